@@ -1,0 +1,135 @@
+"""Compressible flow through orifices, the restrictor venturi and valve curtains.
+
+References
+----------
+Heywood, J.B., Internal Combustion Engine Fundamentals, 1988, app. C
+(isentropic flow through a flow restriction, eqs C.8-C.9).
+"""
+
+import math
+
+import numpy as np
+from numba import njit
+
+from .layout import FASTMATH
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def critical_pressure_ratio(gamma):
+    """Throat-to-stagnation pressure ratio at sonic flow, (2/(g+1))^(g/(g-1)) [-]."""
+    return (2.0 / (gamma + 1.0)) ** (gamma / (gamma - 1.0))
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def orifice_flow(cda, p_up, t_up, r_up, gamma, p_throat):
+    """Isentropic mass flow through an orifice, choked below the critical ratio.
+
+    Parameters
+    ----------
+    cda : float
+        Effective area Cd*A [m^2].
+    p_up, t_up : float
+        Upstream stagnation pressure [Pa] and temperature [K].
+    r_up, gamma : float
+        Upstream specific gas constant [J/(kg K)] and ratio of specific heats [-].
+    p_throat : float
+        Static pressure at the throat (= downstream pressure for a plain orifice) [Pa].
+
+    Returns
+    -------
+    float
+        Mass flow [kg/s], >= 0 (flow from up to down; caller handles reverse flow).
+
+    Notes
+    -----
+    mdot = Cd A p0/sqrt(R T0) * sqrt(2g/(g-1) * (pr^(2/g) - pr^((g+1)/g))), with
+    pr = max(p_throat/p0, pr_crit) so that choking emerges at high flow.
+    """
+    if cda <= 0.0 or p_up <= 0.0:
+        return 0.0
+    pr = p_throat / p_up
+    if pr >= 1.0:
+        return 0.0
+    prc = critical_pressure_ratio(gamma)
+    if pr < prc:
+        pr = prc
+    t = pr ** (1.0 / gamma)
+    psi2 = 2.0 * gamma / (gamma - 1.0) * (t * t - pr * t)
+    if psi2 <= 0.0:
+        return 0.0
+    return cda * p_up / math.sqrt(r_up * t_up) * math.sqrt(psi2)
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def restrictor_throat_pressure(p_up, p_down, recovery):
+    """Throat static pressure of a venturi whose diffuser recovers a fraction of the throat dynamic head.
+
+    p_down = p_t + recovery * (p_up - p_t)  ->  p_t = (p_down - recovery*p_up) / (1 - recovery)  [Pa]
+    """
+    pt = (p_down - recovery * p_up) / (1.0 - recovery)
+    return pt if pt > 0.0 else 0.0
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def restrictor_flow(cda, recovery, p_up, t_up, r_up, gamma, p_down):
+    """Forward mass flow through the restrictor venturi [kg/s] (0 if p_down >= p_up).
+
+    The throat pressure follows from the downstream (plenum) pressure and the
+    diffuser recovery; the flow chokes when the throat reaches the critical
+    ratio, i.e. when p_down/p_up <= recovery + (1 - recovery)*pr_crit.
+    """
+    if p_down >= p_up:
+        return 0.0
+    return orifice_flow(cda, p_up, t_up, r_up, gamma, restrictor_throat_pressure(p_up, p_down, recovery))
+
+
+# ----------------------------------------------------------------- Python-side geometry helpers
+
+def throttle_open_area(throttle_pct, bore_m, shaft_m, closed_deg, leak_area_m2=0.0):
+    """Geometric open area of a butterfly throttle [m^2].
+
+    Parameters
+    ----------
+    throttle_pct : float or array
+        Pedal position 0..100 [%], mapped linearly to plate angle closed_deg..90 deg.
+    bore_m, shaft_m : float
+        Throttle bore and spindle diameter [m].
+    closed_deg : float
+        Plate angle from the bore normal when closed [deg].
+    leak_area_m2 : float
+        Leakage area past the closed plate [m^2], added.
+
+    Notes
+    -----
+    Area of an inclined plate with a spindle (Harrington and Bolt, as given in
+    Heywood 1988 sec. 7.3): with a = d/D and psi the plate angle,
+    A/(pi D^2/4) = 1 - cos(psi)/cos(psi0) + 2/pi [ a/cos(psi) sqrt(cos^2 psi - a^2 cos^2 psi0)
+    + cos(psi)/cos(psi0) asin(a cos(psi0)/cos(psi)) - a sqrt(1-a^2) - asin(a) ],
+    valid until the plate is edge-on to the spindle (cos psi = a cos psi0); beyond,
+    the area stays at that value (bore minus spindle blockage).
+    """
+    pct = np.clip(np.asarray(throttle_pct, dtype=float), 0.0, 100.0)
+    psi0 = np.radians(closed_deg)
+    psi = psi0 + (np.pi / 2 - psi0) * pct / 100.0
+    a = shaft_m / bore_m
+    cos_edge = a * np.cos(psi0)
+    c = np.maximum(np.cos(psi), cos_edge)
+    frac = (1.0 - c / np.cos(psi0)
+            + 2.0 / np.pi * (a / c * np.sqrt(np.maximum(c * c - cos_edge**2, 0.0))
+                             + c / np.cos(psi0) * np.arcsin(np.minimum(cos_edge / c, 1.0))
+                             - a * np.sqrt(1.0 - a * a) - np.arcsin(a)))
+    return np.pi / 4 * bore_m**2 * np.maximum(frac, 0.0) + leak_area_m2
+
+
+def valve_lift(theta_deg, open_deg, duration_deg, max_lift_m, shape):
+    """Valve lift [m] at cycle angles [deg]: L_max * sin(pi*x)^shape over the open period, 0 elsewhere."""
+    x = np.mod(np.asarray(theta_deg, dtype=float) - open_deg, 720.0) / duration_deg
+    lift = np.where(x < 1.0, max_lift_m * np.sin(np.pi * np.clip(x, 0.0, 1.0)) ** shape, 0.0)
+    return np.maximum(lift, 0.0)
+
+
+def valve_effective_area(theta_deg, valves):
+    """Effective flow area Cd(L/D) * pi*D*L * n_valves [m^2] of one cylinder's valve set."""
+    lift = valve_lift(theta_deg, valves.open_deg, valves.duration_deg, valves.max_lift_m, valves.lift_shape)
+    cd = np.interp(lift / valves.diameter_m, valves.cd_ld, valves.cd)
+    return valves.n_valves * cd * np.pi * valves.diameter_m * lift

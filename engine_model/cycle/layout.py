@@ -1,0 +1,109 @@
+"""Index layout of the flat arrays that cross into the kernels.
+
+Module-level integers are compile-time constants for numba.
+"""
+
+# --- FASTMATH choice for all kernels: off.  The model relies on exact IEEE
+# behaviour in a few places (min/max clamps, NaN detection on failure) and the
+# measured gain of fastmath on this kind of kernel is small (pow/exp/log dominate).
+FASTMATH = False
+
+# ------------------------------------------------------------------ species
+SP_A = 0   # air
+SP_M = 1   # fresh mixture (air + fuel vapour at the point's lambda)
+SP_P = 2   # burned products of M
+
+# ------------------------------------------------------------------ volume state columns
+V_MA = 0   # mass of air [kg]
+V_MM = 1   # mass of fresh mixture [kg]
+V_MP = 2   # mass of products [kg]
+V_U = 3    # total internal energy incl. formation enthalpies [J]
+V_T = 4    # temperature [K] (derived; kept as Newton warm start)
+NVCOL = 5
+
+# ------------------------------------------------------------------ scalar parameters (par array)
+P_DT = 0            # time step [s]
+P_NSTEP = 1         # steps per 720 deg cycle
+P_NCYL = 2
+P_PAMB = 3          # ambient pressure [Pa]
+P_TAMB = 4          # ambient temperature [K]
+P_FAR = 5           # fuel/air mass ratio [-]
+P_VD = 6            # swept volume of one cylinder [m3]
+P_SP = 7            # mean piston speed [m/s]
+P_WOSCHNI = 8       # 3.26 * B^-0.2 * multiplier  [SI with p in kPa]
+P_C1_GE = 9
+P_C1_CL = 10
+P_C2 = 11
+P_TW_HEAD = 12
+P_TW_PISTON = 13
+P_TW_LINER = 14
+P_A_HEAD = 15       # head area [m2]
+P_A_PISTON = 16     # piston crown area [m2]
+P_THR_CDA = 17      # throttle effective area [m2]
+P_RES_CDA = 18      # restrictor effective throat area [m2]
+P_RES_REC = 19      # diffuser pressure recovery [-]
+P_IR_A = 20         # intake runner cross-section [m2]
+P_IR_L = 21         # intake runner length [m]
+P_IR_K = 22         # intake runner loss factor incl. exit loss [-]
+P_IR_INERTIA = 23   # 1 = momentum equation, 0 = quasi-steady
+P_ER_A = 24
+P_ER_L = 25
+P_ER_K = 26
+P_ER_INERTIA = 27
+P_TP_CDA = 28       # tailpipe effective area [m2]
+P_KN_A = 29         # Douaud-Eyzat A*(ON/100)^a [s]
+P_KN_N = 30         # pressure exponent [-]
+P_KN_B = 31         # activation temperature [K]
+P_COMBUSTION = 32   # 1 = fired, 0 = motored
+P_MAXCYC = 33       # cycle cap
+P_TOL = 34          # relative convergence tolerance
+P_IDX_IVC = 35      # local step index of IVC
+P_IDX_EVO = 36
+P_IDX_SOC = 37
+P_MINCYC = 38       # minimum cycles before convergence may be declared
+P_GAMMA_MOT = 39    # polytropic exponent for Woschni motored pressure
+P_AITKEN = 40       # 1 = accelerate the slow cycle-to-cycle mode by Aitken extrapolation
+NPAR = 41
+
+# ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
+T_V = 0        # cylinder volume [m3]
+T_ALINER = 1   # exposed liner area [m2]
+T_AIV = 2      # intake valve effective area (Cd * curtain * n) [m2]
+T_AEV = 3      # exhaust valve effective area [m2]
+T_XB = 4       # Wiebe burned fraction [-]
+T_VMOT = 5     # (V_ivc / V)^gamma_mot for the Woschni motored pressure [-]
+T_PHASE = 6    # 0 gas exchange, 1 closed before SOC, 2 combustion/expansion
+T_KWIN = 7     # 1 inside the knock integration window (IVC .. end gas consumed)
+NTAB = 8
+
+# ------------------------------------------------------------------ cycle outputs (out array)
+O_AIR = 0          # air mass through the throttle per cycle [kg]
+O_FUEL = 1         # fuel injected per cycle [kg]
+O_EXH = 2          # mass out of the tailpipe per cycle [kg]
+O_WGROSS = 3       # gross indicated work, all cylinders [J]
+O_WPUMP = 4        # gas-exchange-loop work, all cylinders [J] (negative = pumping loss)
+O_QWALL = 5        # in-cylinder wall heat loss, all cylinders [J]
+O_PMAX = 6         # mean over cylinders of peak pressure [Pa]
+O_PMAX_ANG = 7     # mean over cylinders of its angle [deg ATDC]
+O_TEXH = 8         # mass-averaged temperature of gas leaving the exhaust valves [K]
+O_RES = 9          # mean burned-gas mass fraction at IVC [-]
+O_KNOCK = 10       # max over cylinders of the Livengood-Wu integral [-]
+O_MTRAP = 11       # trapped mass at IVC, all cylinders [kg]
+O_CYCLES = 12
+O_CONVERGED = 13
+O_HAIR = 14        # enthalpy of air in through the throttle [J]
+O_HFUEL = 15       # enthalpy (incl. formation) of fuel injected [J]
+O_HOUT = 16        # enthalpy out through the tailpipe [J]
+O_MBAL = 17        # |in - out| / in over the last cycle [-]
+O_FAIL = 18        # 0 ok, 1 non-finite state, 2 negative mass / pressure
+O_FUEL_BURNED = 19 # fuel mass converted to products per cycle [kg]
+O_PPLENUM = 20     # cycle-mean plenum pressure [Pa]
+O_DTRAP = 21       # last relative change of trapped mass [-]
+O_DIMEP = 22       # last relative change of net work [-]
+O_MAIR_TRAP = 23   # fresh charge (air+fuel) trapped at IVC, all cylinders [kg]
+NOUT = 24
+
+# ------------------------------------------------------------------ traces of the last cycle (trace[row, global_idx])
+TR_P_CYL0 = 0      # rows 0..ncyl-1: cylinder pressures [Pa]
+# then: ncyl rows of cylinder temperatures, plenum pressure, collector pressure,
+# throttle-body pressure, intake-port-1 pressure, exhaust-port-1 pressure

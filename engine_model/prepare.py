@@ -1,0 +1,271 @@
+"""Turn an :class:`EngineSpec` and one operating point into the plain arrays the kernels take."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import thermo, wiebe
+from .cycle import kinematics
+from .cycle import layout as L
+from .cycle.engine import n_volumes
+from .cycle.flow import orifice_flow, restrictor_flow, throttle_open_area, valve_effective_area
+from .spec import EngineSpec
+
+GAMMA_MOTORED = 1.35       # polytropic exponent of the Woschni motored-pressure reference (Woschni 1967 uses a polytrope)
+KNOCK_END_FRACTION = 0.99  # end gas counted as consumed at 99 % burned
+
+
+@dataclass(frozen=True)
+class SolverSettings:
+    """Numerical settings of the cycle solver.
+
+    Parameters
+    ----------
+    step_deg : float
+        Crank-angle step [deg]; must divide 180 exactly.
+    max_cycles : int
+        Cycle cap; a point that has not converged by then is flagged, not dropped.
+    min_cycles : int
+        Cycles always run before convergence may be declared.
+    tolerance : float
+        Relative cycle-to-cycle change of trapped mass and net indicated work,
+        and relative mass imbalance of the cycle, below which a point counts as
+        converged [-].
+    accelerate : bool
+        Extrapolate the slow cycle-to-cycle mode (Aitken, every third cycle)
+        once it decays geometrically; the converged answer is unchanged, only
+        fewer cycles are needed.
+    """
+
+    step_deg: float = 0.5
+    max_cycles: int = 40
+    min_cycles: int = 3
+    tolerance: float = 1e-3
+    accelerate: bool = True
+
+    def __post_init__(self):
+        n = 180.0 / self.step_deg if self.step_deg > 0 else 0.0
+        if not (self.step_deg > 0 and abs(n - round(n)) < 1e-9):
+            raise ValueError(f"solver.step_deg = {self.step_deg!r} must be > 0 and divide 180 exactly")
+        if not (1 <= self.min_cycles <= self.max_cycles <= 1000):
+            raise ValueError(f"solver: need 1 <= min_cycles ({self.min_cycles}) <= max_cycles ({self.max_cycles}) <= 1000")
+        if not (0 < self.tolerance < 0.1):
+            raise ValueError(f"solver.tolerance = {self.tolerance!r} must lie in (0, 0.1)")
+
+
+@dataclass(frozen=True)
+class OperatingPoint:
+    """One operating point in SI-friendly units (validated by :mod:`engine_model.simulate`)."""
+
+    speed_rpm: float
+    throttle_pct: float
+    spark_deg_btdc: float
+    lam: float
+    bdur_10_90_deg: float
+    wiebe_m: float
+    wiebe_a: float = wiebe.WIEBE_A_999
+    p_amb_pa: float = 101325.0
+    t_amb_k: float = 298.15
+    motored: bool = False
+
+
+@dataclass
+class KernelInputs:
+    par: np.ndarray
+    tab: np.ndarray
+    offs: np.ndarray
+    coeffs: np.ndarray
+    rsp: np.ndarray
+    fuel_c: np.ndarray
+    vfix: np.ndarray
+    gas: thermo.GasSet
+    nstep: int
+    ncyl: int
+
+
+def _unwrapped_angles(nstep: int, ivc_deg: float) -> np.ndarray:
+    """Local angles [deg ATDC] of the table indices, running continuously from IVC-720 to IVC."""
+    ang = np.arange(nstep) * (720.0 / nstep)
+    return np.where(ang >= ivc_deg, ang - 720.0, ang)
+
+
+def angle_tables(spec: EngineSpec, op: OperatingPoint, nstep: int) -> np.ndarray:
+    """Per-local-angle tables (see ``layout.T_*``), shape (NTAB, nstep)."""
+    g = spec.geometry
+    ang = np.arange(nstep) * (720.0 / nstep)
+    ivc = spec.intake_valves.open_deg + spec.intake_valves.duration_deg
+    evo = spec.exhaust_valves.open_deg
+    a = _unwrapped_angles(nstep, ivc)
+    tab = np.zeros((L.NTAB, nstep))
+    vol = kinematics.cylinder_volume(ang, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
+    tab[L.T_V] = vol
+    tab[L.T_ALINER] = kinematics.liner_area(ang, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
+    tab[L.T_AIV] = valve_effective_area(ang, spec.intake_valves)
+    tab[L.T_AEV] = valve_effective_area(ang, spec.exhaust_valves)
+    closed = a < evo
+    soc_angle = -op.spark_deg_btdc
+    if not op.motored:
+        bdur = wiebe.bdur_10_90_to_bdur(op.bdur_10_90_deg, op.wiebe_m, op.wiebe_a)
+        tab[L.T_XB] = wiebe.burn_fraction(a, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        ca_end = wiebe.angle_at_fraction(KNOCK_END_FRACTION, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        tab[L.T_KWIN] = (closed & (a < ca_end)).astype(float)
+    v_ivc = kinematics.cylinder_volume(ivc, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
+    tab[L.T_VMOT] = np.where(closed, (v_ivc / vol) ** GAMMA_MOTORED, 0.0)
+    burning = closed & (a >= soc_angle) & (not op.motored)
+    tab[L.T_PHASE] = np.where(burning, 2.0, np.where(closed, 1.0, 0.0))
+    return tab
+
+
+def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings = SolverSettings(),
+                  gas: thermo.GasSet | None = None) -> KernelInputs:
+    """All arrays for :func:`engine_model.cycle.engine.run_engine` at one operating point."""
+    g = spec.geometry
+    ncyl = g.n_cylinders
+    nstep = int(round(720.0 / solver.step_deg))
+    if gas is None:
+        gas = thermo.gas_set(op.lam, spec.fuel)
+    far = 0.0 if op.motored else gas.far
+    step = 720.0 / nstep
+    dt = step / (6.0 * op.speed_rpm)
+    ivc = spec.intake_valves.open_deg + spec.intake_valves.duration_deg
+    bore_area = math.pi / 4.0 * g.bore_m**2
+    it, ex, ht, kn = spec.intake, spec.exhaust, spec.heat_transfer, spec.knock
+
+    par = np.zeros(L.NPAR)
+    par[L.P_DT] = dt
+    par[L.P_NSTEP] = nstep
+    par[L.P_NCYL] = ncyl
+    par[L.P_PAMB] = op.p_amb_pa
+    par[L.P_TAMB] = op.t_amb_k
+    par[L.P_FAR] = far
+    par[L.P_VD] = g.displacement_m3
+    par[L.P_SP] = float(kinematics.mean_piston_speed(op.speed_rpm, g.stroke_m))
+    par[L.P_WOSCHNI] = ht.woschni_coeff * g.bore_m ** -0.2 * ht.multiplier
+    par[L.P_C1_GE] = ht.c1_gas_exchange
+    par[L.P_C1_CL] = ht.c1_closed
+    par[L.P_C2] = ht.c2_combustion
+    par[L.P_TW_HEAD] = ht.head_temp_k
+    par[L.P_TW_PISTON] = ht.piston_temp_k
+    par[L.P_TW_LINER] = ht.liner_temp_k
+    par[L.P_A_HEAD] = ht.head_area_factor * bore_area
+    par[L.P_A_PISTON] = ht.piston_area_factor * bore_area
+    par[L.P_THR_CDA] = it.throttle_cd * float(throttle_open_area(
+        op.throttle_pct, it.throttle_bore_m, it.throttle_shaft_m, it.throttle_closed_deg, it.throttle_leak_area_m2))
+    par[L.P_RES_CDA] = it.restrictor_cd * math.pi / 4.0 * it.restrictor_throat_m**2
+    par[L.P_RES_REC] = it.restrictor_recovery
+    par[L.P_IR_A] = math.pi / 4.0 * it.runner_diameter_m**2
+    par[L.P_IR_L] = it.runner_length_m
+    par[L.P_IR_K] = 1.0 + it.runner_loss_k          # + exit (dump) loss of one dynamic head
+    par[L.P_IR_INERTIA] = 1.0 if it.runner_inertia else 0.0
+    par[L.P_ER_A] = math.pi / 4.0 * ex.runner_diameter_m**2
+    par[L.P_ER_L] = ex.runner_length_m
+    par[L.P_ER_K] = 1.0 + ex.runner_loss_k
+    par[L.P_ER_INERTIA] = 1.0 if ex.runner_inertia else 0.0
+    par[L.P_TP_CDA] = ex.tailpipe_cd * math.pi / 4.0 * ex.tailpipe_diameter_m**2
+    par[L.P_KN_A] = kn.delay_coeff_s * (kn.octane_number / 100.0) ** kn.octane_exponent
+    par[L.P_KN_N] = kn.pressure_exponent
+    par[L.P_KN_B] = kn.activation_temp_k
+    par[L.P_COMBUSTION] = 0.0 if op.motored else 1.0
+    par[L.P_MAXCYC] = solver.max_cycles
+    par[L.P_MINCYC] = solver.min_cycles
+    par[L.P_TOL] = solver.tolerance
+    par[L.P_IDX_IVC] = int(round(ivc / step)) % nstep
+    par[L.P_IDX_EVO] = int(round(spec.exhaust_valves.open_deg / step)) % nstep
+    par[L.P_IDX_SOC] = int(math.floor(((-op.spark_deg_btdc) % 720.0) / step + 1e-9)) % nstep
+    par[L.P_GAMMA_MOT] = GAMMA_MOTORED
+    par[L.P_AITKEN] = 1.0 if solver.accelerate else 0.0
+
+    offs = np.array([int(round(ph / step)) for ph in g.phase_deg()], dtype=np.int64)
+    nvol = n_volumes(ncyl)
+    vfix = np.zeros(nvol)
+    # Lumped runner: the inertance sits between two capacitances, each holding
+    # half the runner's gas volume (the usual pi-network lumping of a pipe), so
+    # the port volume at the valve end gets port + A*L/2 and the plenum /
+    # collector end gets the other half.
+    v_ir = par[L.P_IR_A] * it.runner_length_m
+    v_er = par[L.P_ER_A] * ex.runner_length_m
+    vfix[ncyl:2 * ncyl] = it.port_volume_m3 + 0.5 * v_ir
+    vfix[2 * ncyl:3 * ncyl] = ex.port_volume_m3 + 0.5 * v_er
+    vfix[3 * ncyl] = it.plenum_volume_m3 + 0.5 * ncyl * v_ir
+    vfix[3 * ncyl + 1] = it.throttle_body_volume_m3
+    vfix[3 * ncyl + 2] = ex.collector_volume_m3 + 0.5 * ncyl * v_er
+    coeffs = np.ascontiguousarray(gas.coeffs, dtype=np.float64)
+    if op.motored:  # no fuel: the "mixture" is air
+        coeffs = coeffs.copy()
+        coeffs[L.SP_M] = coeffs[L.SP_A]
+    rsp = np.ascontiguousarray(gas.r_specific, dtype=np.float64).copy()
+    if op.motored:
+        rsp[L.SP_M] = rsp[L.SP_A]
+    return KernelInputs(par=par, tab=angle_tables(spec, op, nstep), offs=offs, coeffs=coeffs, rsp=rsp,
+                        fuel_c=np.ascontiguousarray(gas.fuel_coeffs, dtype=np.float64), vfix=vfix, gas=gas,
+                        nstep=nstep, ncyl=ncyl)
+
+
+def estimate_plenum_pressure(spec: EngineSpec, ki: KernelInputs, ve_guess: float = 0.95) -> float:
+    """Plenum pressure [Pa] at which throttle + restrictor pass what the cylinders draw (steady estimate).
+
+    Used only to start the cycle iteration close to the answer.
+    """
+    par = ki.par
+    p_amb, t_amb = par[L.P_PAMB], par[L.P_TAMB]
+    r, gam = float(ki.rsp[L.SP_A]), 1.4
+    speed_rpm = (720.0 / ki.nstep) / (6.0 * par[L.P_DT])
+    vd_tot = spec.geometry.total_displacement_m3
+
+    def imbalance(p_pl):
+        # series throttle/restrictor: find throttle-body pressure that passes the same flow
+        lo, hi = p_pl, p_amb
+        for _ in range(50):
+            p_tb = 0.5 * (lo + hi)
+            m1 = orifice_flow(par[L.P_THR_CDA], p_amb, t_amb, r, gam, p_tb)
+            m2 = restrictor_flow(par[L.P_RES_CDA], par[L.P_RES_REC], p_tb, t_amb, r, gam, p_pl)
+            if m1 > m2:
+                lo = p_tb
+            else:
+                hi = p_tb
+        supply = orifice_flow(par[L.P_THR_CDA], p_amb, t_amb, r, gam, 0.5 * (lo + hi))
+        draw = ve_guess * p_pl / (r * t_amb) * vd_tot * speed_rpm / 120.0
+        return supply - draw
+
+    lo, hi = 0.02 * p_amb, p_amb * 0.9999
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if imbalance(mid) > 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def initial_state(spec: EngineSpec, ki: KernelInputs) -> tuple[np.ndarray, np.ndarray]:
+    """A cold-start state: intake at the estimated plenum pressure, exhaust hot and full of products."""
+    ncyl, nstep = ki.ncyl, ki.nstep
+    nvol = n_volumes(ncyl)
+    par = ki.par
+    p_amb, t_amb = par[L.P_PAMB], par[L.P_TAMB]
+    p_pl = estimate_plenum_pressure(spec, ki)
+    vol = np.zeros((nvol, L.NVCOL))
+    v = ki.vfix.copy()
+    for k in range(ncyl):
+        v[k] = ki.tab[L.T_V, (0 - ki.offs[k]) % nstep]
+
+    def fill(i, p, t, ya, ym, yp):
+        c = ya * ki.coeffs[0] + ym * ki.coeffs[1] + yp * ki.coeffs[2]
+        r = ya * ki.rsp[0] + ym * ki.rsp[1] + yp * ki.rsp[2]
+        m = p * v[i] / (r * t)
+        vol[i, L.V_MA], vol[i, L.V_MM], vol[i, L.V_MP] = m * ya, m * ym, m * yp
+        vol[i, L.V_U] = m * (thermo.h_mass(c, t) - r * t)
+        vol[i, L.V_T] = t
+
+    for k in range(ncyl):
+        fill(k, p_pl, 340.0, 0.0, 0.93, 0.07)
+        fill(ncyl + k, p_pl, t_amb, 1.0, 0.0, 0.0)
+        fill(2 * ncyl + k, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
+    fill(3 * ncyl, p_pl, t_amb, 1.0, 0.0, 0.0)
+    fill(3 * ncyl + 1, 0.5 * (p_pl + p_amb), t_amb, 1.0, 0.0, 0.0)
+    fill(3 * ncyl + 2, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
+    mr = np.zeros(2 * ncyl)
+    return vol, mr
