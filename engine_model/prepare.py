@@ -41,7 +41,7 @@ class SolverSettings:
     """
 
     step_deg: float = 0.5
-    max_cycles: int = 40
+    max_cycles: int = 100
     min_cycles: int = 3
     tolerance: float = 1e-3
     accelerate: bool = True
@@ -260,8 +260,16 @@ def initial_state(spec: EngineSpec, ki: KernelInputs) -> tuple[np.ndarray, np.nd
         vol[i, L.V_U] = m * (thermo.h_mass(c, t) - r * t)
         vol[i, L.V_T] = t
 
+    # cylinders: in their closed period, a motored-like state compressed from IVC;
+    # otherwise at plenum pressure (fresh charge with a little residual)
+    ivc = int(par[L.P_IDX_IVC])
+    evo = int(par[L.P_IDX_EVO])
+    v_ivc = ki.tab[L.T_V, ivc]
     for k in range(ncyl):
-        fill(k, p_pl, 340.0, 0.0, 0.93, 0.07)
+        li = (0 - ki.offs[k]) % nstep
+        closed = li >= ivc or li < evo
+        ratio = v_ivc / v[k] if closed else 1.0
+        fill(k, p_pl * ratio**1.35, 340.0 * ratio**0.35, 0.0, 0.93, 0.07)
         fill(ncyl + k, p_pl, t_amb, 1.0, 0.0, 0.0)
         fill(2 * ncyl + k, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
     fill(3 * ncyl, p_pl, t_amb, 1.0, 0.0, 0.0)

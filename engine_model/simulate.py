@@ -146,7 +146,7 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
 
 
 def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings = SolverSettings(),
-                   state=None, return_traces: bool = False):
+                   state=None, return_traces: bool = False, gas: thermo.GasSet | None = None):
     """Simulate one operating point to a converged cycle.
 
     Parameters
@@ -159,6 +159,9 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
         neighbouring point); a cold-start estimate otherwise.
     return_traces : bool
         Also return the last cycle's traces (see ``run_engine``).
+    gas : GasSet, optional
+        Gas properties to use instead of ``thermo.gas_set(lambda, spec.fuel)``
+        (e.g. a constant-cp set for analytic-limit tests).
 
     Returns
     -------
@@ -169,7 +172,7 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     ndarray, optional
         Traces, shape (2*ncyl + 5, nstep), if requested.
     """
-    ki = kernel_inputs(spec, op, solver)
+    ki = kernel_inputs(spec, op, solver, gas)
     if state is None:
         vol, mr = initial_state(spec, ki)
     else:
@@ -182,6 +185,8 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     else:
         burn = wiebe.burn_angles(op.spark_deg_btdc, op.bdur_10_90_deg, op.wiebe_m, op.wiebe_a)
     row = _result_row(spec, op, out, ki.gas, burn)
+    row["fuel_burned_mg_per_cycle"] = out[L.O_FUEL_BURNED] * 1e6
+    row["gross_work_j_per_cycle"] = out[L.O_WGROSS]
     if return_traces:
         return row, (vol, mr), trace
     return row, (vol, mr)

@@ -1,0 +1,65 @@
+"""Atomic file output: write to a temporary file in the target folder, then rename.
+
+A reader never sees a half-written file, and an interrupted run leaves either
+the old file or none.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+
+
+def _atomic(path: Path, write) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def write_parquet(df: pd.DataFrame, path) -> Path:
+    """Write a DataFrame to Parquet (pyarrow) atomically."""
+    return _atomic(path, lambda tmp: df.to_parquet(tmp, engine="pyarrow", index=False))
+
+
+def write_csv(df: pd.DataFrame, path, **kwargs) -> Path:
+    """Write a DataFrame to CSV atomically."""
+    return _atomic(path, lambda tmp: df.to_csv(tmp, index=False, **kwargs))
+
+
+def write_text(text: str, path) -> Path:
+    """Write text atomically."""
+    return _atomic(path, lambda tmp: Path(tmp).write_text(text))
+
+
+def write_json(obj, path) -> Path:
+    """Write JSON (sorted keys, indented) atomically."""
+    return write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n", path)
+
+
+def read_table(path) -> pd.DataFrame:
+    """Read a CSV or Parquet table; ValueError naming the file on failure."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{p}: file not found")
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".csv":
+            return pd.read_csv(p)
+        if suffix in (".parquet", ".pq"):
+            return pd.read_parquet(p)
+    except Exception as exc:  # noqa: BLE001 - report any parser failure with the file name
+        raise ValueError(f"{p}: could not be read as {suffix[1:]}: {exc}") from None
+    raise ValueError(f"{p}: unsupported file type {suffix!r}; expected .csv or .parquet")

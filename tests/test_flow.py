@@ -1,0 +1,110 @@
+"""Flow elements against the isentropic-nozzle formulas written out independently here."""
+
+import math
+
+import numpy as np
+import pytest
+
+from engine_model import default_spec, gas_set
+from engine_model.cycle import kinematics
+from engine_model.cycle.flow import (orifice_flow, restrictor_flow, throttle_open_area, valve_effective_area,
+                                     valve_lift)
+from engine_model.thermo import cp_mass
+
+R_AIR = 287.05          # J/(kg K), dry air (textbook value, independent of thermo.py)
+P0, T0 = 101325.0, 298.15
+
+
+def _gamma_air(T):
+    gs = gas_set(1.0)
+    cp = cp_mass(gs.coeffs[0], T)
+    return cp / (cp - gs.r_specific[0]), gs.r_specific[0]
+
+
+def _isentropic_choked(A, p0, t0, gamma=1.4, r=R_AIR):
+    return A * p0 * math.sqrt(gamma / (r * t0)) * (2 / (gamma + 1)) ** ((gamma + 1) / (2 * (gamma - 1)))
+
+
+def _isentropic_subsonic(A, p0, t0, p, gamma=1.4, r=R_AIR):
+    pr = p / p0
+    return A * p0 / math.sqrt(r * t0) * math.sqrt(2 * gamma / (gamma - 1) * (pr ** (2 / gamma) - pr ** ((gamma + 1) / gamma)))
+
+
+def test_restrictor_choked_flow_matches_isentropic_formula():
+    """20 mm throat, Cd 1, no diffuser: 0.5 % of the textbook gamma = 1.4 value.
+
+    The kernel takes gamma and R from the NASA-polynomial air model (gamma = 1.4007
+    at 298 K), so agreement within 0.5 % is a real check, not a tautology.
+    """
+    A = math.pi / 4 * 0.020**2
+    g, r = _gamma_air(T0)
+    for p_down in (0.0, 10e3, 40e3, 52e3):
+        m = restrictor_flow(A, 0.0, P0, T0, r, g, p_down)
+        assert m == pytest.approx(_isentropic_choked(A, P0, T0), rel=5e-3)
+    # about 0.0745 kg/s = 268 kg/h: the FS restrictor limit at sea level
+    assert 0.073 < _isentropic_choked(A, P0, T0) < 0.076
+
+
+def test_restrictor_subsonic_flow_matches_formula_and_is_continuous_at_choking():
+    A = math.pi / 4 * 0.020**2
+    g, r = _gamma_air(T0)
+    for pr in (0.6, 0.8, 0.95, 0.995):
+        m = restrictor_flow(A, 0.0, P0, T0, r, g, pr * P0)
+        assert m == pytest.approx(_isentropic_subsonic(A, P0, T0, pr * P0), rel=5e-3)
+    prc = (2 / (g + 1)) ** (g / (g - 1))
+    below = restrictor_flow(A, 0.0, P0, T0, r, g, prc * P0 * (1 - 1e-6))
+    above = restrictor_flow(A, 0.0, P0, T0, r, g, prc * P0 * (1 + 1e-6))
+    assert above == pytest.approx(below, rel=1e-5)
+    assert restrictor_flow(A, 0.0, P0, T0, r, g, P0) == 0.0
+
+
+def test_diffuser_recovery_moves_choking_to_a_higher_back_pressure():
+    """With recovery k the throat still chokes at p_t/p0 = pr*, reached when p_down/p0 = k + (1-k) pr*."""
+    A = math.pi / 4 * 0.020**2
+    g, r = _gamma_air(T0)
+    k = 0.85
+    prc = (2 / (g + 1)) ** (g / (g - 1))
+    pr_choke = k + (1 - k) * prc
+    m_choked = _isentropic_choked(A, P0, T0, g, r)
+    assert restrictor_flow(A, k, P0, T0, r, g, (pr_choke - 0.01) * P0) == pytest.approx(m_choked, rel=1e-9)
+    m_sub = restrictor_flow(A, k, P0, T0, r, g, (pr_choke + 0.01) * P0)
+    assert 0.5 * m_choked < m_sub < m_choked
+    # a plain orifice at the same back pressure passes much less than the venturi
+    assert orifice_flow(A, P0, T0, r, g, (pr_choke + 0.01) * P0) < 0.5 * m_sub
+
+
+def test_throttle_area_limits():
+    s = default_spec().intake
+    a0 = throttle_open_area(0.0, s.throttle_bore_m, s.throttle_shaft_m, s.throttle_closed_deg)
+    assert a0 == pytest.approx(0.0, abs=1e-12)
+    pct = np.linspace(0, 100, 101)
+    a = throttle_open_area(pct, s.throttle_bore_m, s.throttle_shaft_m, s.throttle_closed_deg)
+    assert np.all(np.diff(a) >= -1e-15)
+    bore_area = math.pi / 4 * s.throttle_bore_m**2
+    # wide open: bore minus the spindle's projection (within the small-a expansion of the formula)
+    wot = bore_area - s.throttle_bore_m * s.throttle_shaft_m
+    assert a[-1] == pytest.approx(wot, rel=0.02)
+    assert a[-1] < bore_area
+
+
+def test_valve_lift_and_area():
+    spec = default_spec()
+    iv = spec.intake_valves
+    th = np.arange(0, 720, 0.5)
+    lift = valve_lift(th, iv.open_deg, iv.duration_deg, iv.max_lift_m, iv.lift_shape)
+    assert lift.max() == pytest.approx(iv.max_lift_m, rel=1e-4)
+    open_ = th[lift > 0]
+    assert open_.min() == pytest.approx(iv.open_deg, abs=0.5)
+    assert open_.max() == pytest.approx(iv.open_deg + iv.duration_deg, abs=0.5)
+    area = valve_effective_area(th, iv)
+    assert area.max() < iv.n_valves * math.pi * iv.diameter_m * iv.max_lift_m   # Cd < 1
+
+
+def test_slider_crank_volumes():
+    g = default_spec().geometry
+    v = lambda th: kinematics.cylinder_volume(th, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
+    assert v(0.0) == pytest.approx(g.clearance_m3, rel=1e-12)
+    assert v(180.0) == pytest.approx(g.clearance_m3 + g.displacement_m3, rel=1e-12)
+    assert v(180.0) / v(0.0) == pytest.approx(g.compression_ratio, rel=1e-12)
+    # finite rod: piston is past half stroke before 90 deg
+    assert v(90.0) - v(0.0) > 0.5 * g.displacement_m3
