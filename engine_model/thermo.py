@@ -418,3 +418,65 @@ def mix_coeffs(coeffs, y_a, y_m, y_p, out):
     for i in range(2):
         for j in range(7):
             out[i, j] = y_a * coeffs[0, i, j] + y_m * coeffs[1, i, j] + y_p * coeffs[2, i, j]
+
+
+@_jit
+def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
+    """Temperature, cp, h and R of a three-species mixture from its specific internal energy, in one pass.
+
+    Mixes only the coefficient range the Newton iteration is in (re-mixing if
+    it crosses ``T_MID``), which is what the cycle kernel needs per volume per
+    stage.  Same result as ``mix_coeffs`` + ``temperature_from_u`` +
+    ``cp_mass`` + ``h_mass``.
+
+    Parameters
+    ----------
+    coeffs : (3, 2, 7) float64
+        Mass-based coefficients of A, M, P.
+    rsp : (3,) float64
+        Specific gas constants [J/(kg K)].
+    y_a, y_m, y_p : float
+        Mass fractions [-].
+    u : float
+        Specific internal energy [J/kg].
+    t_guess : float
+        Starting temperature [K].
+    out : (4,) float64
+        Receives T [K], cp [J/(kg K)], h [J/kg], R [J/(kg K)].
+    """
+    r = y_a * rsp[0] + y_m * rsp[1] + y_p * rsp[2]
+    T = t_guess if (t_guess >= _T_MIN and t_guess <= _T_MAX) else T_MID
+    k = 0 if T < T_MID else 1
+    c0 = y_a * coeffs[0, k, 0] + y_m * coeffs[1, k, 0] + y_p * coeffs[2, k, 0]
+    c1 = y_a * coeffs[0, k, 1] + y_m * coeffs[1, k, 1] + y_p * coeffs[2, k, 1]
+    c2 = y_a * coeffs[0, k, 2] + y_m * coeffs[1, k, 2] + y_p * coeffs[2, k, 2]
+    c3 = y_a * coeffs[0, k, 3] + y_m * coeffs[1, k, 3] + y_p * coeffs[2, k, 3]
+    c4 = y_a * coeffs[0, k, 4] + y_m * coeffs[1, k, 4] + y_p * coeffs[2, k, 4]
+    c5 = y_a * coeffs[0, k, 5] + y_m * coeffs[1, k, 5] + y_p * coeffs[2, k, 5]
+    for _ in range(30):
+        cv = c0 - r + T * (c1 + T * (c2 + T * (c3 + T * c4)))
+        uu = T * (c0 - r + T * (c1 / 2.0 + T * (c2 / 3.0 + T * (c3 / 4.0 + T * c4 / 5.0)))) + c5
+        t_new = T - (uu - u) / cv
+        if t_new < _T_MIN:
+            t_new = _T_MIN
+        elif t_new > _T_MAX:
+            t_new = _T_MAX
+        k_new = 0 if t_new < T_MID else 1
+        if k_new != k:
+            k = k_new
+            c0 = y_a * coeffs[0, k, 0] + y_m * coeffs[1, k, 0] + y_p * coeffs[2, k, 0]
+            c1 = y_a * coeffs[0, k, 1] + y_m * coeffs[1, k, 1] + y_p * coeffs[2, k, 1]
+            c2 = y_a * coeffs[0, k, 2] + y_m * coeffs[1, k, 2] + y_p * coeffs[2, k, 2]
+            c3 = y_a * coeffs[0, k, 3] + y_m * coeffs[1, k, 3] + y_p * coeffs[2, k, 3]
+            c4 = y_a * coeffs[0, k, 4] + y_m * coeffs[1, k, 4] + y_p * coeffs[2, k, 4]
+            c5 = y_a * coeffs[0, k, 5] + y_m * coeffs[1, k, 5] + y_p * coeffs[2, k, 5]
+            T = t_new
+            continue
+        done = abs(t_new - T) <= 1e-9 * t_new
+        T = t_new
+        if done:
+            break
+    out[0] = T
+    out[1] = c0 + T * (c1 + T * (c2 + T * (c3 + T * c4)))
+    out[2] = T * (c0 + T * (c1 / 2.0 + T * (c2 / 3.0 + T * (c3 / 4.0 + T * c4 / 5.0)))) + c5
+    out[3] = r

@@ -257,3 +257,24 @@ def test_fuelspec_validation_names_field_and_value(field, value):
     with pytest.raises(ValueError) as err:
         FuelSpec(**{field: value})
     assert field in str(err.value) and repr(value) in str(err.value)
+
+
+def test_mixture_state_equals_the_separate_functions():
+    """The fused kernel helper must agree with mix_coeffs + temperature_from_u + cp_mass + h_mass."""
+    thermo = th
+    gs = thermo.gas_set(0.9)
+    out = np.empty(4)
+    buf = np.empty((2, 7))
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        y = rng.dirichlet([1.0, 1.0, 1.0])
+        T_true = rng.uniform(250.0, 3200.0)
+        thermo.mix_coeffs(gs.coeffs, y[0], y[1], y[2], buf)
+        r = float(y @ gs.r_specific)
+        u = thermo.u_mass(buf, r, T_true)
+        guess = rng.uniform(300.0, 2500.0)
+        thermo.mixture_state(gs.coeffs, gs.r_specific, y[0], y[1], y[2], u, guess, out)
+        assert out[0] == pytest.approx(T_true, abs=1e-6)
+        assert out[1] == pytest.approx(thermo.cp_mass(buf, T_true), rel=1e-10)
+        assert out[2] == pytest.approx(thermo.h_mass(buf, T_true), rel=1e-9, abs=1e-3)
+        assert out[3] == pytest.approx(r, rel=1e-14)

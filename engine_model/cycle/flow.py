@@ -133,3 +133,36 @@ def valve_effective_area(theta_deg, valves):
     lift = valve_lift(theta_deg, valves.open_deg, valves.duration_deg, valves.max_lift_m, valves.lift_shape)
     cd = np.interp(lift / valves.diameter_m, valves.cd_ld, valves.cd)
     return valves.n_valves * cd * np.pi * valves.diameter_m * lift
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def orifice_flow_lin(cda, p_up, t_up, r_up, gamma, p_throat, eps):
+    """Orifice flow and its partial derivatives: (mdot, dmdot/dp_up, dmdot/dp_throat).
+
+    Same law as :func:`orifice_flow`, except that for 1 - p_throat/p_up < eps the
+    flow is continued linearly in (p_up - p_throat) from its value at 1 - eps, so
+    the conductance stays finite at equal pressures (the square-root law has an
+    infinite slope there).  For p_throat >= p_up the flow is 0 and the derivatives
+    are those of the linear branch (the caller's signed law is linear through 0).
+    """
+    if cda <= 0.0 or p_up <= 0.0:
+        return 0.0, 0.0, 0.0
+    k = cda / math.sqrt(r_up * t_up)
+    pr = p_throat / p_up
+    xl = 1.0 - eps
+    if pr > xl:
+        tl = xl ** (1.0 / gamma)
+        psil = math.sqrt(2.0 * gamma / (gamma - 1.0) * (tl * tl - xl * tl))
+        g = k * psil / eps                     # d mdot / d(p_up - p_throat)
+        if pr >= 1.0:
+            return 0.0, g, -g
+        return g * (p_up - p_throat), g, -g
+    prc = critical_pressure_ratio(gamma)
+    if pr <= prc:
+        t = prc ** (1.0 / gamma)
+        psi = math.sqrt(2.0 * gamma / (gamma - 1.0) * (t * t - prc * t))
+        return k * p_up * psi, k * psi, 0.0
+    t = pr ** (1.0 / gamma)
+    psi = math.sqrt(2.0 * gamma / (gamma - 1.0) * (t * t - pr * t))
+    dpsi = (2.0 * t * t / pr - (gamma + 1.0) * t) / ((gamma - 1.0) * psi)
+    return k * p_up * psi, k * (psi - pr * dpsi), k * dpsi

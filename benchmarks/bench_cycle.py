@@ -1,0 +1,106 @@
+"""Speed of the cycle kernel (prints figures; not part of the test run).
+
+Figures printed:
+- numba compile time, cold (fresh cache folder, in a subprocess) and cached;
+- microseconds per cylinder-cycle and milliseconds per 4-cylinder cycle;
+- milliseconds per converged operating point from a cold start, median over
+  >= 50 points spread over throttle, speed and spark;
+- milliseconds per point inside a Wiebe sweep at one operating point, where
+  consecutive points start from the previous converged gas-exchange state.
+
+Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_cycle.py [--points N]``.
+Single core: numba kernels are serial; set NUMBA_NUM_THREADS=1 for certainty.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import textwrap
+import time
+
+import numpy as np
+import pandas as pd
+
+COMPILE_SNIPPET = textwrap.dedent("""
+    import time
+    t0 = time.perf_counter()
+    from engine_model import OperatingPoint, default_spec, simulate_point
+    t1 = time.perf_counter()
+    simulate_point(default_spec(), OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4))
+    t2 = time.perf_counter()
+    print(f"{t1 - t0:.3f} {t2 - t1:.3f}")
+""")
+
+
+def _compile_time(cache_dir: str) -> tuple[float, float]:
+    env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
+    out = subprocess.run([sys.executable, "-c", COMPILE_SNIPPET], env=env, capture_output=True, text=True, check=True)
+    imp, first = (float(x) for x in out.stdout.split())
+    return imp, first
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=60, help="operating points for the cold-start median (>= 50)")
+    ap.add_argument("--sweep", type=int, default=49, help="points of the Wiebe sweep (7 x 7 by default)")
+    args = ap.parse_args(argv)
+
+    with tempfile.TemporaryDirectory() as cache:
+        imp_c, cold = _compile_time(cache)
+        imp_w, warm = _compile_time(cache)
+    print("numba compile + first point (subprocess, fresh cache):  "
+          f"{cold:6.2f} s   (import {imp_c:.2f} s)")
+    print("cached load + first point   (subprocess, warm cache):   "
+          f"{warm:6.2f} s   (import {imp_w:.2f} s)")
+
+    from engine_model import OperatingPoint, SolverSettings, default_spec, simulate, simulate_point
+
+    spec = default_spec()
+    solver = SolverSettings()
+    simulate_point(spec, OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4), solver)  # warm this process
+
+    rng = np.random.default_rng(20261122)
+    n = max(args.points, 50)
+    speeds = rng.uniform(3000.0, 13000.0, n)
+    throttles = rng.uniform(20.0, 100.0, n)
+    sparks = rng.uniform(20.0, 50.0, n)
+    t_point, cycles, n_bad = [], [], 0
+    for sp, th, sa in zip(speeds, throttles, sparks):
+        op = OperatingPoint(float(sp), float(th), float(sa), 0.9 if th > 90 else 1.0, 24.0, 6.4)
+        t0 = time.perf_counter()
+        row, _ = simulate_point(spec, op, solver)
+        t_point.append(time.perf_counter() - t0)
+        cycles.append(row["cycles_run"])
+        n_bad += not row["converged"]
+    t_point = np.array(t_point)
+    cycles = np.array(cycles)
+    per_cycle = t_point / cycles
+    ncyl = spec.geometry.n_cylinders
+    print(f"\nstep {solver.step_deg} deg, tolerance {solver.tolerance:g}, {n} points "
+          f"(3000-13000 rpm, 20-100 % throttle, spark 20-50 deg BTDC)")
+    print(f"  per 4-cylinder cycle:         median {np.median(per_cycle) * 1e3:7.2f} ms")
+    print(f"  per cylinder-cycle:           median {np.median(per_cycle) / ncyl * 1e6:7.0f} us")
+    print(f"  cycles to converge:           median {np.median(cycles):5.0f}   max {cycles.max()}"
+          f"   not converged {n_bad}")
+    print(f"  per converged point (cold):   median {np.median(t_point) * 1e3:7.1f} ms"
+          f"   p90 {np.percentile(t_point, 90) * 1e3:.1f} ms")
+
+    k = int(round(np.sqrt(args.sweep)))
+    grid = [(b, m) for b in np.linspace(20.0, 50.0, k) for m in np.linspace(2.0, 8.0, k)]
+    sweep = pd.DataFrame({"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
+                          "bdur_10_90_deg": [g[0] for g in grid], "wiebe_m": [g[1] for g in grid]})
+    t0 = time.perf_counter()
+    res = simulate(spec, sweep, solver)
+    el = time.perf_counter() - t0
+    print(f"\nWiebe sweep at 9000 rpm WOT, {len(sweep)} points (BDUR10-90 20..50 x m 2..8), warm state reused:")
+    print(f"  per point:                    mean {el / len(sweep) * 1e3:7.1f} ms"
+          f"   median cycles {res['cycles_run'].median():.0f}   not converged {int((~res['converged']).sum())}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
