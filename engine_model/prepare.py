@@ -186,17 +186,17 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     offs = np.array([int(round(ph / step)) for ph in g.phase_deg()], dtype=np.int64)
     nvol = n_volumes(ncyl)
     vfix = np.zeros(nvol)
-    # Lumped runner: the inertance sits between two capacitances, each holding
-    # half the runner's gas volume (the usual pi-network lumping of a pipe), so
-    # the port volume at the valve end gets port + A*L/2 and the plenum /
-    # collector end gets the other half.
+    # Lumped runner: the inertance sits between two capacitances that share the
+    # runner's gas volume A*L: the fraction ``runner_volume_at_port`` with the
+    # port at the valve end, the rest with the plenum / collector.
     v_ir = par[L.P_IR_A] * it.runner_length_m
     v_er = par[L.P_ER_A] * ex.runner_length_m
-    vfix[ncyl:2 * ncyl] = it.port_volume_m3 + 0.5 * v_ir
-    vfix[2 * ncyl:3 * ncyl] = ex.port_volume_m3 + 0.5 * v_er
-    vfix[3 * ncyl] = it.plenum_volume_m3 + 0.5 * ncyl * v_ir
+    fi, fe = it.runner_volume_at_port, ex.runner_volume_at_port
+    vfix[ncyl:2 * ncyl] = it.port_volume_m3 + fi * v_ir
+    vfix[2 * ncyl:3 * ncyl] = ex.port_volume_m3 + fe * v_er
+    vfix[3 * ncyl] = it.plenum_volume_m3 + (1.0 - fi) * ncyl * v_ir
     vfix[3 * ncyl + 1] = it.throttle_body_volume_m3
-    vfix[3 * ncyl + 2] = ex.collector_volume_m3 + 0.5 * ncyl * v_er
+    vfix[3 * ncyl + 2] = ex.collector_volume_m3 + (1.0 - fe) * ncyl * v_er
     coeffs = np.ascontiguousarray(gas.coeffs, dtype=np.float64)
     if op.motored:  # no fuel: the "mixture" is air
         coeffs = coeffs.copy()

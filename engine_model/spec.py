@@ -194,6 +194,10 @@ class IntakeSpec:
     pressure-loss factor of a runner in units of its dynamic head.
     ``runner_inertia`` switches the lumped gas-inertia (momentum) equation of the
     runners on; off makes them quasi-steady resistances.
+    ``runner_volume_at_port`` is the fraction of a runner's gas volume lumped
+    with the port (the rest goes to the plenum): 0 is the Helmholtz-resonator
+    lumping (runner = neck, port + cylinder = cavity), 0.5 the symmetric
+    pi-network lumping of a pipe.
     """
 
     throttle_bore_m: float
@@ -212,6 +216,7 @@ class IntakeSpec:
     runner_inertia: bool = True
     wall_temp_k: float = 320.0
     throttle_leak_area_m2: float = 3.0e-6
+    runner_volume_at_port: float = 0.5
 
     def __post_init__(self):
         o = "intake"
@@ -230,6 +235,7 @@ class IntakeSpec:
         _check(o, "port_volume_m3", self.port_volume_m3, 0.0, 0.01, lo_open=True)
         _check(o, "wall_temp_k", self.wall_temp_k, 200.0, 600.0)
         _check(o, "throttle_leak_area_m2", self.throttle_leak_area_m2, 0.0, 1e-3)
+        _check(o, "runner_volume_at_port", self.runner_volume_at_port, 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -238,6 +244,8 @@ class ExhaustSpec:
 
     ``tailpipe_diameter_m`` with ``tailpipe_cd`` sets the silencer/tailpipe
     effective flow area, i.e. the back pressure at a given flow.
+    ``runner_volume_at_port`` as for the intake (fraction of the runner's gas
+    volume lumped with the exhaust port; the rest with the collector).
     """
 
     port_volume_m3: float
@@ -248,6 +256,7 @@ class ExhaustSpec:
     tailpipe_diameter_m: float
     tailpipe_cd: float
     runner_inertia: bool = True
+    runner_volume_at_port: float = 0.5
 
     def __post_init__(self):
         o = "exhaust"
@@ -258,6 +267,7 @@ class ExhaustSpec:
         _check(o, "collector_volume_m3", self.collector_volume_m3, 0.0, 0.1, lo_open=True)
         _check(o, "tailpipe_diameter_m", self.tailpipe_diameter_m, 0.0, 0.3, lo_open=True)
         _check(o, "tailpipe_cd", self.tailpipe_cd, 0.0, 1.0, lo_open=True)
+        _check(o, "runner_volume_at_port", self.runner_volume_at_port, 0.0, 1.0)
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..thermo import cp_mass, h_mass, mix_coeffs, temperature_from_u
+from ..thermo import cp_mass, h_mass, mixture_state
 from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
                        woschni_velocity)
 from .flow import orifice_flow, orifice_flow_lin, restrictor_throat_pressure
@@ -77,13 +77,13 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         ya = ma / m
         ym = mm / m
         yp = mp / m
-        mix_coeffs(coeffs, ya, ym, yp, cbuf)
-        r = ya * rsp[SP_A] + ym * rsp[SP_M] + yp * rsp[SP_P]
-        t = temperature_from_u(cbuf, r, vol[k, V_U] / m, vol[k, V_T])
+        mixture_state(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T], cbuf)
+        t = cbuf[0]
+        cp = cbuf[1]
+        r = cbuf[3]
         if not (t > 150.0 and t < 4400.0):
             return 100 + k
         vol[k, V_T] = t
-        cp = cp_mass(cbuf, t)
         v = vcur[k]
         p = m * r * t / v
         g = cp / (cp - r)
@@ -91,7 +91,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         props[k, PR_T] = t
         props[k, PR_R] = r
         props[k, PR_G] = g
-        props[k, PR_H] = h_mass(cbuf, t)
+        props[k, PR_H] = cbuf[2]
         props[k, PR_YA] = ya
         props[k, PR_YM] = ym
         props[k, PR_YP] = yp
@@ -638,7 +638,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     mincyc = int(par[P_MINCYC])
     tol = par[P_TOL]
 
-    cbuf = np.empty((2, 7))
+    cbuf = np.empty(4)
     props = np.zeros((nvol + 2, NPR))   # + ambient, + tailpipe pseudo-volume
     _set_ambient(props, nvol, par, coeffs, rsp)
     vcur = vfix.copy()
