@@ -105,6 +105,42 @@ def _plot_comparison(cmp_: pd.DataFrame, path: Path, eta_trans: float) -> None:
     plt.close(fig)
 
 
+def _plot_traces(spec, bench_row, args, path: Path) -> None:
+    """Cylinder and manifold pressures over the converged cycle at one bench point."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from .prepare import OperatingPoint
+    from .simulate import simulate_point
+
+    op = OperatingPoint(float(bench_row["speed_rpm"]), float(bench_row["throttle_pct"]),
+                        float(bench_row["spark_deg_btdc"]), float(bench_row["lambda"]),
+                        args.bdur_10_90, args.wiebe_m)
+    row, _, tr = simulate_point(spec, op, _solver(args), return_traces=True)
+    ncyl = spec.geometry.n_cylinders
+    ang = np.arange(tr.shape[1]) * 720.0 / tr.shape[1]
+    fig, ax = plt.subplots(1, 2, figsize=(13, 4))
+    for k in range(ncyl):
+        ax[0].plot(ang, tr[k] / 1e5, lw=1, label=f"cylinder {k + 1}")
+    ax[0].set_ylabel("cylinder pressure [bar]")
+    ax[1].plot(ang, tr[2 * ncyl] / 1e5, label="plenum")
+    ax[1].plot(ang, tr[2 * ncyl + 3] / 1e5, label="intake port 1")
+    ax[1].plot(ang, tr[2 * ncyl + 4] / 1e5, label="exhaust port 1")
+    ax[1].plot(ang, tr[2 * ncyl + 1] / 1e5, label="collector")
+    ax[1].set_ylabel("pressure [bar]")
+    for a in ax:
+        a.set_xlabel("crank angle of cylinder 1 [deg], 0 = firing TDC")
+        a.grid(alpha=0.3)
+        a.legend(fontsize=8)
+    fig.suptitle(f"{op.speed_rpm:.0f} rpm WOT, spark {op.spark_deg_btdc:g} deg BTDC: pmax {row['pmax_bar']:.0f} bar "
+                 f"at {row['pmax_deg_atdc']:.0f} deg ATDC, VE {row['vol_eff']:.2f}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 def cmd_run(args) -> int:
     spec = load_spec(args.spec)
     bench = load_bench(args.bench)
@@ -125,6 +161,8 @@ def cmd_run(args) -> int:
         text = cmp_.round(2).to_string(index=False)
     write_text(text + "\n", work / "comparison.txt")
     _plot_comparison(cmp_, work / "wot_comparison.png", args.eta_trans)
+    mid = bench.iloc[len(bench) // 2]
+    _plot_traces(spec, mid, args, work / f"pressure_traces_{int(mid['speed_rpm'])}.png")
     write_json({
         "package_version": __version__, "engine": spec.name, "spec_hash": spec.spec_hash(),
         "bench": "packaged Table 2" if args.bench is None else str(args.bench),
@@ -139,7 +177,7 @@ def cmd_run(args) -> int:
     print(f"\nTable 2 (WOT, lambda 0.9), BDUR10-90 = {args.bdur_10_90:g} deg, m = {args.wiebe_m:g}, "
           f"measured torque/power divided by eta_trans = {args.eta_trans:g}:\n")
     print(text)
-    print(f"\nresults: {final}/ (simulated.parquet, comparison.csv, wot_comparison.png, manifest.json)")
+    print(f"\nresults: {final}/ (simulated.parquet, comparison.csv, wot_comparison.png, pressure_traces_*.png, manifest.json)")
     return 0
 
 
