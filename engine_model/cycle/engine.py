@@ -47,7 +47,7 @@ NPR = 10
 STIFF_FRACTION = 2.0  # legacy switch (par[P_NET] = 0 / elements outside the network): see _flow_between
 
 # accumulator layout: global entries, then 6 per cylinder
-A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN = range(7)
+A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN = range(8)
 A_CYL0 = 8
 AC_WORK, AC_Q, AC_KNOCK, AC_EXM, AC_EXMT = range(5)
 AC_N = 6
@@ -555,7 +555,8 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
     # ---- apply the flows (each leaves one volume and enters another, same mass and enthalpy)
     mth = E[0, 6]
     _transfer(amb, itb, mth, nvol, props, dvol)
-    acc[A_AIR] += mth * (1.0 if mth >= 0.0 else props[itb, PR_YA])
+    acc[A_AIR] += mth * (1.0 if mth >= 0.0 else props[itb, PR_YA])   # air only: what an airflow meter sees
+    acc[A_MIN] += mth                                                 # all species: for the mass balance
     acc[A_HAIR] += mth * (props[amb, PR_H] if mth >= 0.0 else props[itb, PR_H])
     _transfer(itb, ipl, E[1, 6], nvol, props, dvol)
     mtp = E[2, 6]
@@ -681,9 +682,9 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     prev_work = 0.0
     # Aitken (one-mode vector) extrapolation of the slow cycle-to-cycle mode
     # (mostly burned gas washing out of the plenum): states at cycle ends.
-    hist_vol = np.zeros((3, nvol, NVCOL))
-    hist_mr = np.zeros((3, mr.shape[0]))
-    hist_m = np.zeros(3)
+    hist_vol = np.zeros((2, nvol, NVCOL))
+    hist_mr = np.zeros((2, mr.shape[0]))
+    hist_m = np.zeros(4)
     n_hist = 0
     since_jump = 0
     converged = 0
@@ -773,7 +774,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
         # ---- end of cycle: convergence on trapped mass, net work and mass balance
         mtrap = trapped.sum()
         wnet = wgross.sum() + wpump.sum()
-        min_ = cyc_acc[A_AIR] + cyc_acc[A_FUEL]
+        min_ = cyc_acc[A_MIN] + cyc_acc[A_FUEL]
         mbal = abs(min_ - cyc_acc[A_OUT]) / min_ if min_ > 0.0 else 1.0
         if prev_trap > 0.0:
             dtrap = abs(mtrap - prev_trap) / mtrap
@@ -784,35 +785,47 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
         prev_work = wnet
         if converged == 1:
             break
-        # shift the history and try an extrapolation every third cycle
-        for j in range(2):
-            hist_vol[j] = hist_vol[j + 1]
-            hist_mr[j] = hist_mr[j + 1]
+        # shift the history (4 scalars, 2 states) and try an extrapolation
+        for j in range(3):
             hist_m[j] = hist_m[j + 1]
-        hist_vol[2] = vol
-        hist_mr[2] = mr
-        hist_m[2] = mtrap
-        n_hist = min(n_hist + 1, 3)
+        hist_vol[0] = hist_vol[1]
+        hist_mr[0] = hist_mr[1]
+        hist_vol[1] = vol
+        hist_mr[1] = mr
+        # the slow mode lives in the manifolds: track the gas stored outside the cylinders
+        m_store = 0.0
+        for i in range(ncyl, nvol):
+            m_store += vol[i, V_MA] + vol[i, V_MM] + vol[i, V_MP]
+        hist_m[3] = m_store
+        n_hist = min(n_hist + 1, 4)
         since_jump += 1
-        if par[P_AITKEN] > 0.5 and n_hist == 3 and since_jump >= 3 and cyc >= 4:
-            dm_a = hist_m[1] - hist_m[0]
-            dm_b = hist_m[2] - hist_m[1]
-            if dm_a != 0.0:
-                q = dm_b / dm_a
-                if 0.3 < q < 0.97 and abs(dm_b) > 0.2 * tol * mtrap:
+        if par[P_AITKEN] > 0.5 and n_hist == 4 and since_jump >= 4 and cyc >= 4:
+            s1 = hist_m[1] - hist_m[0]
+            s2 = hist_m[2] - hist_m[1]
+            s3 = hist_m[3] - hist_m[2]
+            if s1 != 0.0 and s2 != 0.0:
+                q1 = s2 / s1
+                q = s3 / s2
+                # a clean geometric mode (two ratio estimates agree) that still matters
+                # against the tolerance; near convergence plain cycles finish the job
+                if 0.3 < q < 0.95 and abs(q - q1) < 0.1 and abs(s3) > max(0.05 * tol, 1e-5) * m_store:
                     f = q / (1.0 - q)
                     ok = True
+                    # species masses may be exactly zero; refuse only a clearly negative one
                     for i in range(nvol):
-                        for c in range(NVCOL - 1):
-                            x = vol[i, c] + f * (vol[i, c] - hist_vol[1, i, c])
-                            if c < V_U and x <= 0.0:
+                        mi = vol[i, V_MA] + vol[i, V_MM] + vol[i, V_MP]
+                        for c in range(V_U):
+                            x = vol[i, c] + f * (vol[i, c] - hist_vol[0, i, c])
+                            if x < -1e-6 * mi:
                                 ok = False
                     if ok:
                         for i in range(nvol):
                             for c in range(NVCOL - 1):
-                                vol[i, c] += f * (vol[i, c] - hist_vol[1, i, c])
+                                vol[i, c] += f * (vol[i, c] - hist_vol[0, i, c])
+                                if c < V_U and vol[i, c] < 0.0:
+                                    vol[i, c] = 0.0
                         for i in range(mr.shape[0]):
-                            mr[i] += f * (mr[i] - hist_mr[1, i])
+                            mr[i] += f * (mr[i] - hist_mr[0, i])
                         since_jump = 0
                         n_hist = 0
                         prev_trap = -1.0   # the next cycle starts a fresh comparison
@@ -847,7 +860,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     out[O_TEXH] = exmt / exm if exm > 0.0 else 0.0
     out[O_MTRAP] = trapped.sum()
     out[O_MAIR_TRAP] = trapped_fresh.sum()
-    min_ = cyc_acc[A_AIR] + cyc_acc[A_FUEL]
+    min_ = cyc_acc[A_MIN] + cyc_acc[A_FUEL]
     out[O_MBAL] = abs(min_ - cyc_acc[A_OUT]) / min_ if min_ > 0.0 else 1.0
     out[O_PPLENUM] = ppl_sum / nstep
     out[O_DTRAP] = dtrap
