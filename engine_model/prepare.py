@@ -109,7 +109,11 @@ def angle_tables(spec: EngineSpec, op: OperatingPoint, nstep: int) -> np.ndarray
     soc_angle = -op.spark_deg_btdc
     if not op.motored:
         bdur = wiebe.bdur_10_90_to_bdur(op.bdur_10_90_deg, op.wiebe_m, op.wiebe_a)
-        tab[L.T_XB] = wiebe.burn_fraction(a, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        # Burning ends when the exhaust valve opens: a burn still going at EVO
+        # leaves the rest of the mixture unburned (lost efficiency, not a failure).
+        xb = wiebe.burn_fraction(a, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        xb_evo = wiebe.burn_fraction(evo, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        tab[L.T_XB] = np.where(a < evo, xb, xb_evo)
         ca_end = wiebe.angle_at_fraction(KNOCK_END_FRACTION, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
         tab[L.T_KWIN] = (closed & (a < ca_end)).astype(float)
     v_ivc = kinematics.cylinder_volume(ivc, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)

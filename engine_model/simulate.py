@@ -91,6 +91,20 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
     return pts
 
 
+def _volume_name(k: int, ncyl: int) -> str:
+    names = ["cylinder", "intake port", "exhaust port"]
+    if k < 3 * ncyl:
+        return f"{names[k // ncyl]} {k % ncyl + 1}"
+    return ["plenum", "throttle body", "exhaust collector"][k - 3 * ncyl]
+
+
+def _failure_text(code: int, ncyl: int) -> str:
+    """Kernel failure code -> words: 100+k temperature out of range in volume k, 200+k negative mass."""
+    kind, k = divmod(int(code), 100)
+    what = {1: "temperature left the 150-4400 K range", 2: "negative mass"}.get(kind, f"code {code}")
+    return f"{what} in {_volume_name(k, ncyl)}"
+
+
 def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: thermo.GasSet,
                 burn: dict) -> dict:
     g = spec.geometry
@@ -104,7 +118,7 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
     row["cycles_run"] = int(out[L.O_CYCLES])
     row.update({k: burn[k] for k in ("ca10_deg_atdc", "ca50_deg_atdc", "ca90_deg_atdc")})
     if fail:
-        row["status"] = {1: "failed: non-finite temperature", 2: "failed: negative mass"}.get(fail, "failed")
+        row["status"] = f"failed: {_failure_text(fail, spec.geometry.n_cylinders)}"
         row["converged"] = False
         return row
     row["status"] = "ok" if row["converged"] else "not converged"

@@ -82,3 +82,20 @@ def test_step_halving_changes_torque_and_airflow_little():
     assert a["converged"] and b["converged"]
     assert a["brake_torque_nm"] == pytest.approx(b["brake_torque_nm"], rel=3e-3)
     assert a["air_mass_flow_kg_h"] == pytest.approx(b["air_mass_flow_kg_h"], rel=3e-3)
+
+
+def test_very_late_burn_is_a_result_not_a_failure(wot_9000):
+    """A burn still going at EVO (CA50 ~100 deg ATDC) leaves mixture unburned: lower power, converged."""
+    spec = default_spec()
+    row, _ = simulate_point(spec, OperatingPoint(9000.0, 100.0, 50.0, 0.9, 50.0, 8.0))
+    assert row["status"] == "ok" and row["converged"]
+    assert row["ca50_deg_atdc"] > 90.0
+    assert row["brake_power_kw"] < 0.5 * wot_9000["brake_power_kw"]
+    assert row["exhaust_temp_k"] > wot_9000["exhaust_temp_k"]
+
+
+def test_failure_codes_name_the_volume():
+    from engine_model.simulate import _failure_text
+    assert _failure_text(201, 4) == "negative mass in cylinder 2"
+    assert _failure_text(110, 4) == "temperature left the 150-4400 K range in exhaust port 3"
+    assert _failure_text(212, 4) == "negative mass in plenum"
