@@ -1,9 +1,7 @@
 """Physics of the cycle kernel: analytic limits and conservation, on the real engine kernel."""
 
 import dataclasses
-import math
 
-import numpy as np
 import pytest
 
 from engine_model import OperatingPoint, SolverSettings, default_spec, simulate_point, wiebe

@@ -1,7 +1,6 @@
 """Engine spec: the embedded R6 carries the paper's values; bad specs are refused by name."""
 
 import dataclasses
-import math
 
 import pytest
 

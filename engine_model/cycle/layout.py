@@ -63,12 +63,8 @@ P_IDX_SOC = 37
 P_MINCYC = 38       # minimum cycles before convergence may be declared
 P_GAMMA_MOT = 39    # polytropic exponent for Woschni motored pressure
 P_AITKEN = 40       # 1 = accelerate the slow cycle-to-cycle mode by Aitken extrapolation
-P_NET = 41          # 1 = orifice elements by the linearly implicit network solve (0 = legacy explicit/implicit switch)
-P_NET_W = 42        # implicit horizon: 0 -> tau = dt (default), 1 -> tau = dt*z/(1+z) (z = volume stiffness)
-P_NET_EPS = 43      # orifice law linear below 1 - p_dn/p_up < eps [-]
-P_NET_MASK = 44     # bit mask of elements in the network: 1 throttle, 2 restrictor, 4 IV, 8 EV, 16 tailpipe
-P_STIFF = 45        # legacy STIFF_FRACTION
-NPAR = 46
+P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
+NPAR = 42
 
 # ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
 T_V = 0        # cylinder volume [m3]

@@ -1,0 +1,112 @@
+"""Gas volumes of the network: state -> properties, and mass/enthalpy transfer between volumes."""
+
+from numba import njit
+
+from ..thermo import cp_mass, h_mass, mixture_state
+from .layout import *  # noqa: F401,F403  (index constants)
+
+# property columns of the scratch array ``props``
+PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP, PR_RHO, PR_S = range(10)
+NPR = 10
+
+# accumulator layout: global entries, then 6 per cylinder
+A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN = range(8)
+A_CYL0 = 8
+AC_WORK, AC_Q, AC_KNOCK, AC_EXM, AC_EXMT = range(5)
+AC_N = 6
+
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
+    """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
+    for k in range(nvol):
+        ma = vol[k, V_MA]
+        mm = vol[k, V_MM]
+        mp = vol[k, V_MP]
+        if ma < -1e-15 or mm < -1e-15 or mp < -1e-15:
+            return 200 + k
+        m = ma + mm + mp
+        if not (m > 0.0):
+            return 200 + k
+        ya = ma / m
+        ym = mm / m
+        yp = mp / m
+        mixture_state(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T], cbuf)
+        t = cbuf[0]
+        cp = cbuf[1]
+        r = cbuf[3]
+        if not (t > 150.0 and t < 4400.0):
+            return 100 + k
+        vol[k, V_T] = t
+        v = vcur[k]
+        p = m * r * t / v
+        g = cp / (cp - r)
+        props[k, PR_P] = p
+        props[k, PR_T] = t
+        props[k, PR_R] = r
+        props[k, PR_G] = g
+        props[k, PR_H] = cbuf[2]
+        props[k, PR_YA] = ya
+        props[k, PR_YM] = ym
+        props[k, PR_YP] = yp
+        props[k, PR_RHO] = m / v
+        props[k, PR_S] = g * r * t / v
+    return 0
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _transfer(i, j, mdot, nvol, props, dvol):
+    """Move ``mdot`` [kg/s] from i to j (negative: j to i) with the upstream composition and enthalpy."""
+    u = i if mdot >= 0.0 else j
+    fa = mdot * props[u, PR_YA]
+    fm = mdot * props[u, PR_YM]
+    fp = mdot * props[u, PR_YP]
+    fh = mdot * props[u, PR_H]
+    if i < nvol:
+        dvol[i, V_MA] -= fa
+        dvol[i, V_MM] -= fm
+        dvol[i, V_MP] -= fp
+        dvol[i, V_U] -= fh
+    if j < nvol:
+        dvol[j, V_MA] += fa
+        dvol[j, V_MM] += fm
+        dvol[j, V_MP] += fp
+        dvol[j, V_U] += fh
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
+    """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
+    if m >= 0.0:
+        ya = props[ip, PR_YA]
+        mf = m * ya * far
+        hf = h_mass(fuel_c, props[ip, PR_T])
+        dvol[ip, V_MA] -= m * ya
+        dvol[ip, V_MM] -= m * props[ip, PR_YM]
+        dvol[ip, V_MP] -= m * props[ip, PR_YP]
+        dvol[ip, V_U] -= m * props[ip, PR_H]
+        dvol[k, V_MM] += m * (ya + props[ip, PR_YM]) + mf
+        dvol[k, V_MP] += m * props[ip, PR_YP]
+        dvol[k, V_U] += m * props[ip, PR_H] + mf * hf
+        acc[A_FUEL] += mf
+        acc[A_HFUEL] += mf * hf
+    else:
+        _transfer(ip, k, m, nvol, props, dvol)
+
+
+@njit(cache=True, fastmath=FASTMATH)
+def _set_ambient(props, amb, par, coeffs, rsp):
+    t = par[P_TAMB]
+    c = coeffs[SP_A]
+    cp = cp_mass(c, t)
+    props[amb, PR_P] = par[P_PAMB]
+    props[amb, PR_T] = t
+    props[amb, PR_R] = rsp[SP_A]
+    props[amb, PR_G] = cp / (cp - rsp[SP_A])
+    props[amb, PR_H] = h_mass(c, t)
+    props[amb, PR_YA] = 1.0
+    props[amb, PR_YM] = 0.0
+    props[amb, PR_YP] = 0.0
+    props[amb, PR_RHO] = par[P_PAMB] / (rsp[SP_A] * t)
+    props[amb, PR_S] = 0.0
