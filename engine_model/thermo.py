@@ -421,6 +421,18 @@ def mix_coeffs(coeffs, y_a, y_m, y_p, out):
 
 
 @_jit
+def _mix_range(coeffs, k, y_a, y_m, y_p):
+    """First six mass-weighted coefficients of temperature range k (cp polynomial and enthalpy constant)."""
+    w = (y_a, y_m, y_p)
+    return (w[0] * coeffs[0, k, 0] + w[1] * coeffs[1, k, 0] + w[2] * coeffs[2, k, 0],
+            w[0] * coeffs[0, k, 1] + w[1] * coeffs[1, k, 1] + w[2] * coeffs[2, k, 1],
+            w[0] * coeffs[0, k, 2] + w[1] * coeffs[1, k, 2] + w[2] * coeffs[2, k, 2],
+            w[0] * coeffs[0, k, 3] + w[1] * coeffs[1, k, 3] + w[2] * coeffs[2, k, 3],
+            w[0] * coeffs[0, k, 4] + w[1] * coeffs[1, k, 4] + w[2] * coeffs[2, k, 4],
+            w[0] * coeffs[0, k, 5] + w[1] * coeffs[1, k, 5] + w[2] * coeffs[2, k, 5])
+
+
+@_jit
 def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
     """Temperature, cp, h and R of a three-species mixture from its specific internal energy, in one pass.
 
@@ -447,12 +459,7 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
     r = y_a * rsp[0] + y_m * rsp[1] + y_p * rsp[2]
     T = t_guess if (t_guess >= _T_MIN and t_guess <= _T_MAX) else T_MID
     k = 0 if T < T_MID else 1
-    c0 = y_a * coeffs[0, k, 0] + y_m * coeffs[1, k, 0] + y_p * coeffs[2, k, 0]
-    c1 = y_a * coeffs[0, k, 1] + y_m * coeffs[1, k, 1] + y_p * coeffs[2, k, 1]
-    c2 = y_a * coeffs[0, k, 2] + y_m * coeffs[1, k, 2] + y_p * coeffs[2, k, 2]
-    c3 = y_a * coeffs[0, k, 3] + y_m * coeffs[1, k, 3] + y_p * coeffs[2, k, 3]
-    c4 = y_a * coeffs[0, k, 4] + y_m * coeffs[1, k, 4] + y_p * coeffs[2, k, 4]
-    c5 = y_a * coeffs[0, k, 5] + y_m * coeffs[1, k, 5] + y_p * coeffs[2, k, 5]
+    c0, c1, c2, c3, c4, c5 = _mix_range(coeffs, k, y_a, y_m, y_p)
     for _ in range(30):
         cv = c0 - r + T * (c1 + T * (c2 + T * (c3 + T * c4)))
         uu = T * (c0 - r + T * (c1 / 2.0 + T * (c2 / 3.0 + T * (c3 / 4.0 + T * c4 / 5.0)))) + c5
@@ -464,12 +471,7 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
         k_new = 0 if t_new < T_MID else 1
         if k_new != k:
             k = k_new
-            c0 = y_a * coeffs[0, k, 0] + y_m * coeffs[1, k, 0] + y_p * coeffs[2, k, 0]
-            c1 = y_a * coeffs[0, k, 1] + y_m * coeffs[1, k, 1] + y_p * coeffs[2, k, 1]
-            c2 = y_a * coeffs[0, k, 2] + y_m * coeffs[1, k, 2] + y_p * coeffs[2, k, 2]
-            c3 = y_a * coeffs[0, k, 3] + y_m * coeffs[1, k, 3] + y_p * coeffs[2, k, 3]
-            c4 = y_a * coeffs[0, k, 4] + y_m * coeffs[1, k, 4] + y_p * coeffs[2, k, 4]
-            c5 = y_a * coeffs[0, k, 5] + y_m * coeffs[1, k, 5] + y_p * coeffs[2, k, 5]
+            c0, c1, c2, c3, c4, c5 = _mix_range(coeffs, k, y_a, y_m, y_p)
             T = t_new
             continue
         done = abs(t_new - T) <= 1e-9 * t_new
