@@ -23,7 +23,6 @@ from .prepare import OperatingPoint, SolverSettings, initial_state, kernel_input
 from .spec import EngineSpec
 
 REQUIRED_COLUMNS = ("speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m")
-OPTIONAL_COLUMNS = {"wiebe_a": wiebe.WIEBE_A_999, "p_amb_pa": None, "t_amb_k": None}
 
 RESULT_COLUMNS = (
     "air_mass_flow_kg_h", "vol_eff", "fuel_mass_flow_kg_h", "imep_gross_bar", "pmep_bar", "imep_net_bar",

@@ -48,9 +48,6 @@ def n_volumes(ncyl):
     return 3 * ncyl + 3
 
 
-def n_accumulators(ncyl):
-    return A_CYL0 + AC_N * ncyl
-
 
 @njit(cache=True, fastmath=FASTMATH)
 def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
