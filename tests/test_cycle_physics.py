@@ -56,11 +56,19 @@ def wot_9000():
     return simulate_point(spec, op)[0]
 
 
-def test_conservation_on_converged_cycle(wot_9000):
-    """Whole-engine balances over the last cycle (in - out - stored change ~ 0 when periodic)."""
-    assert wot_9000["converged"]
-    assert wot_9000["mass_balance_error"] < 1e-3
-    assert wot_9000["energy_balance_error"] < 5e-3
+def test_conservation_on_converged_cycle():
+    """Whole-engine balances over the last cycle: in - out (mass) and in - out - work - heat (energy).
+
+    The cycle-to-cycle criterion includes the mass balance, so it is run here at
+    a tolerance 10x tighter than the 0.1 % the issue asks for; the energy balance
+    is not part of any criterion and is an independent check of the scheme.
+    """
+    spec = default_spec()
+    op = OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4)
+    row, _ = simulate_point(spec, op, SolverSettings(tolerance=1e-4, max_cycles=200))
+    assert row["converged"]
+    assert row["mass_balance_error"] < 1e-3
+    assert row["energy_balance_error"] < 5e-3
 
 
 def test_rich_mixture_releases_less_than_lhv(wot_9000):
