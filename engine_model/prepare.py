@@ -179,7 +179,6 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     par[L.P_IDX_IVC] = int(round(ivc / step)) % nstep
     par[L.P_IDX_EVO] = int(round(spec.exhaust_valves.open_deg / step)) % nstep
     par[L.P_IDX_SOC] = int(math.floor(((-op.spark_deg_btdc) % 720.0) / step + 1e-9)) % nstep
-    par[L.P_GAMMA_MOT] = GAMMA_MOTORED
     par[L.P_AITKEN] = 1.0 if solver.accelerate else 0.0
     par[L.P_NET_EPS] = 1e-4   # ~10 Pa at 1 bar; results change < 0.05 % between 1e-3 and 1e-6
 

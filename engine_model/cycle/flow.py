@@ -72,7 +72,7 @@ def restrictor_throat_pressure(p_up, p_down, recovery):
 
 @njit(cache=True, fastmath=FASTMATH)
 def restrictor_flow(cda, recovery, p_up, t_up, r_up, gamma, p_down):
-    """Forward mass flow through the restrictor venturi [kg/s] (0 if p_down >= p_up).
+    """Forward mass flow through the restrictor venturi [kg/s] (0 if p_down >= p_up); recovery 0 is a plain orifice.
 
     The throat pressure follows from the downstream (plenum) pressure and the
     diffuser recovery; the flow chokes when the throat reaches the critical

@@ -61,7 +61,6 @@ P_IDX_IVC = 35      # local step index of IVC
 P_IDX_EVO = 36
 P_IDX_SOC = 37
 P_MINCYC = 38       # minimum cycles before convergence may be declared
-P_GAMMA_MOT = 39    # polytropic exponent of the Woschni motored pressure (informational; applied in the T_VMOT table)
 P_AITKEN = 40       # 1 = accelerate the slow cycle-to-cycle mode by Aitken extrapolation
 P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
 NPAR = 42

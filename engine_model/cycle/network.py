@@ -2,19 +2,11 @@
 
 from numba import njit
 
-from .flow import orifice_flow, orifice_flow_lin, restrictor_throat_pressure
+from .flow import orifice_flow_lin, restrictor_flow, restrictor_throat_pressure
 from .layout import *  # noqa: F401,F403  (index constants)
 from .volumes import PR_G, PR_P, PR_R, PR_S, PR_T
 
 STIFF_FRACTION = 2.0  # single-element flows: solved implicitly when the explicit flow would move > 2x the equalising mass per step
-
-
-@njit(cache=True, fastmath=FASTMATH)
-def _element_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn):
-    """Forward flow of an orifice (rec = 0) or a venturi with diffuser recovery ``rec`` [kg/s]."""
-    if rec > 0.0:
-        return orifice_flow(cda, p_up, t_up, r_up, g_up, restrictor_throat_pressure(p_up, p_dn, rec))
-    return orifice_flow(cda, p_up, t_up, r_up, g_up, p_dn)
 
 
 @njit(cache=True, fastmath=FASTMATH)
@@ -33,14 +25,14 @@ def _implicit_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn, s_up, s_dn, dt, m0):
     if m0 < hi:
         hi = m0
     g_lo = -m0
-    g_hi = hi - _element_flow(cda, rec, p_up - s_up * dt * hi, t_up, r_up, g_up, p_dn + s_dn * dt * hi)
+    g_hi = hi - restrictor_flow(cda, rec, p_up - s_up * dt * hi, t_up, r_up, g_up, p_dn + s_dn * dt * hi)
     if g_hi <= 0.0:
         return hi
     side = 0
     m = hi
     for _ in range(30):
         m = (lo * g_hi - hi * g_lo) / (g_hi - g_lo)
-        g = m - _element_flow(cda, rec, p_up - s_up * dt * m, t_up, r_up, g_up, p_dn + s_dn * dt * m)
+        g = m - restrictor_flow(cda, rec, p_up - s_up * dt * m, t_up, r_up, g_up, p_dn + s_dn * dt * m)
         if abs(g) <= 1e-9 * m0:
             break
         if g > 0.0:
@@ -59,7 +51,7 @@ def _implicit_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn, s_up, s_dn, dt, m0):
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _flow_between(i, j, cda, rec_fwd, props, dt, stiff=STIFF_FRACTION):
+def _flow_between(i, j, cda, rec_fwd, props, dt):
     """Signed flow i -> j [kg/s] through an orifice, or a venturi (recovery ``rec_fwd`` for i -> j only).
 
     Implicit in the two pressures where the explicit flow is stiff (see ``_implicit_flow``).
@@ -72,18 +64,18 @@ def _flow_between(i, j, cda, rec_fwd, props, dt, stiff=STIFF_FRACTION):
         u, d, sgn, rec = j, i, -1.0, 0.0
     pu = props[u, PR_P]
     pd = props[d, PR_P]
-    m0 = _element_flow(cda, rec, pu, props[u, PR_T], props[u, PR_R], props[u, PR_G], pd)
+    m0 = restrictor_flow(cda, rec, pu, props[u, PR_T], props[u, PR_R], props[u, PR_G], pd)
     su = props[u, PR_S]
     sd = props[d, PR_S]
-    if m0 > 0.0 and (su + sd) * dt * m0 > stiff * (pu - pd):
+    if m0 > 0.0 and (su + sd) * dt * m0 > STIFF_FRACTION * (pu - pd):
         m0 = _implicit_flow(cda, rec, pu, props[u, PR_T], props[u, PR_R], props[u, PR_G], pd, su, sd, dt, m0)
     return sgn * m0
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def _orifice_between(i, j, cda, props, dt, stiff=STIFF_FRACTION):
+def _orifice_between(i, j, cda, props, dt):
     """Signed orifice flow i -> j [kg/s]."""
-    return _flow_between(i, j, cda, 0.0, props, dt, stiff)
+    return _flow_between(i, j, cda, 0.0, props, dt)
 
 
 @njit(cache=True, fastmath=FASTMATH)
