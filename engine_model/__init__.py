@@ -3,6 +3,7 @@
 The public API lives here; physics kernels are in :mod:`engine_model.cycle`.
 """
 
+from . import doe  # noqa: F401  DOE test plans: engine_model.doe.full_factorial, sobol, d_optimal, spark_sweeps, ...
 from .prepare import OperatingPoint, SolverSettings
 from .simulate import RESULT_COLUMNS, simulate, simulate_point, validate_points
 from .spec import EngineSpec, default_spec, load_spec
