@@ -4,7 +4,7 @@ import json
 
 import pandas as pd
 
-from engine_model.cli import main
+from flows.cli import main
 
 
 def test_mbc_simulate_writes_parquet(tmp_path):
@@ -31,14 +31,17 @@ def test_mbc_simulate_bad_input_writes_nothing(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == [src]
 
 
-def test_mbc_run_on_packaged_data(tmp_path, capsys):
+def test_mbc_run_on_packaged_data(prefect_api, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["run", "--out", str(out)]) == 0
     files = {p.name for p in out.iterdir()}
-    assert {"simulated.parquet", "comparison.csv", "wot_comparison.png", "manifest.json"} <= files
+    assert {"simulated.parquet", "comparison.csv", "wot_comparison.png", "manifest.json", "bench_sweep"} <= files
     cmp_ = pd.read_csv(out / "comparison.csv")
     assert len(cmp_) == 7 and cmp_["air_kg_h_sim"].notna().all()
     man = json.loads((out / "manifest.json").read_text())
-    assert man["points"] == 7 and man["wiebe_m"] == 6.4
+    assert man["points"] == 7 and man["wiebe_m"] == 6.4 and man["status"] == "complete"
+    assert man["sweeps"]["bench_sweep"]["counts"]["points"] == 7
+    sweep_man = json.loads((out / "bench_sweep" / "manifest.json").read_text())
+    assert sweep_man["status"] == "complete" and sweep_man["dask"]["workers"] == 2
     assert "wot_9000" in capsys.readouterr().out
     assert not (tmp_path / "run.partial").exists()

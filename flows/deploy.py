@@ -1,0 +1,117 @@
+"""Prefect deployments served by ``mbc serve``.
+
+* ``sweep/sweep``: the parameterised sweep (``plan``, ``out``, solver settings);
+  trigger with ``prefect deployment run sweep/sweep -p plan=... -p out=...``.
+* ``bench-watch/bench-watch``: on a schedule (interval or cron), looks for
+  bench files (CSV/Parquet in the bench contract) dropped into a watched folder
+  and runs the pipeline (``run`` flow) on each new one.  A file is "new" when
+  its content hash is not in ``<watch>/.mbc_processed.json``; a file that fails
+  validation is recorded with its error and tried again only when its content
+  changes.
+
+The Dask cluster used by served runs comes from ``MBC_DASK_ADDRESS`` (an
+existing scheduler) or ``MBC_WORKERS`` (local workers, default 2), which
+``mbc serve`` sets from its options before the runner starts flow runs.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+from pathlib import Path
+
+from . import prefect_env  # noqa: F401
+from .run import run_flow
+from .sweep import sweep_flow
+
+from prefect import flow  # noqa: E402
+
+from engine_model.io import write_json  # noqa: E402
+
+PROCESSED = ".mbc_processed.json"
+BENCH_SUFFIXES = (".csv", ".parquet")
+
+
+def _file_hash(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def new_bench_files(watch: Path) -> list[tuple[Path, str]]:
+    """Bench files in ``watch`` whose content has not been processed yet (sorted by name)."""
+    done = _load_processed(watch)
+    out = []
+    for p in sorted(watch.iterdir()) if watch.is_dir() else []:
+        if p.is_file() and p.suffix.lower() in BENCH_SUFFIXES and not p.name.startswith("."):
+            h = _file_hash(p)
+            if done.get(p.name, {}).get("sha256") != h:
+                out.append((p, h))
+    return out
+
+
+def _load_processed(watch: Path) -> dict:
+    try:
+        return json.loads((watch / PROCESSED).read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+@flow(name="bench-watch", log_prints=True, validate_parameters=False)
+def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
+    """Run the pipeline on every new bench file in ``watch``; results under ``results``/<time>-<file>-<hash>/."""
+    wdir = Path(watch)
+    wdir.mkdir(parents=True, exist_ok=True)
+    report = {}
+    for path, h in new_bench_files(wdir):
+        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        out = Path(results) / f"{stamp}-{path.stem}-{h[:8]}"
+        entry = {"sha256": h, "processed": _dt.datetime.now().isoformat(timespec="seconds")}
+        try:
+            run_flow(out=str(out), bench=str(path), progress=False)
+            entry.update(status="ok", results=str(out))
+        except ValueError as exc:      # bad bench file: record why, do not retry the same content
+            entry.update(status="refused", error=str(exc))
+        print(f"{path.name}: {entry['status']} {entry.get('results', entry.get('error', ''))}")
+        processed = _load_processed(wdir)
+        processed[path.name] = entry
+        write_json(processed, wdir / PROCESSED)
+        report[path.name] = entry
+    if not report:
+        print(f"no new bench files in {wdir}")
+    return report
+
+
+def build_deployments(watch: str, results: str, cron: str | None = None, interval_s: float | None = None):
+    """The two deployments (see module docstring); the watcher runs every 600 s unless told otherwise."""
+    from prefect.deployments.runner import EntrypointType
+
+    sched = {"cron": cron} if cron else {"interval": interval_s if interval_s else 600.0}
+    sweep = sweep_flow.to_deployment(name="sweep", entrypoint_type=EntrypointType.MODULE_PATH,
+                                     description="Simulate a plan of operating points into Parquet (resumable).")
+    watcher = watch_flow.to_deployment(name="bench-watch", entrypoint_type=EntrypointType.MODULE_PATH,
+                                       parameters={"watch": str(Path(watch).resolve()),
+                                                   "results": str(Path(results).resolve())},
+                                       description="Run the pipeline on new bench files in the watched folder.",
+                                       **sched)
+    return [sweep, watcher]
+
+
+def serve_deployments(watch: str = "bench_inbox", cron: str | None = None, interval_s: float | None = None,
+                      workers: int = 2, dask_address: str | None = None, results: str = "results") -> None:
+    """Register and serve the deployments until interrupted (needs a Prefect API: ``PREFECT_API_URL``)."""
+    from prefect import serve
+
+    if cron is None and interval_s is not None and interval_s <= 0:
+        raise ValueError(f"--interval = {interval_s} must be > 0 seconds")
+    if workers < 1:
+        raise ValueError(f"--workers = {workers} must be >= 1")
+    if dask_address:
+        os.environ["MBC_DASK_ADDRESS"] = dask_address
+    os.environ["MBC_WORKERS"] = str(workers)
+    Path(watch).mkdir(parents=True, exist_ok=True)
+    deployments = build_deployments(watch, results, cron, interval_s)
+    if not prefect_env.configured_api_url():
+        print("mbc serve: no PREFECT_API_URL set; using Prefect's ephemeral API (runs are not visible "
+              "to other processes). Start `prefect server start` and export PREFECT_API_URL for a real server.")
+    serve(*deployments)
