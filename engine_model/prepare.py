@@ -11,11 +11,16 @@ from . import thermo, wiebe
 from .cycle import kinematics
 from .cycle import layout as L
 from .cycle.engine import n_volumes
-from .cycle.flow import orifice_flow, restrictor_flow, throttle_open_area, valve_effective_area
+from .cycle.flow import orifice_flow, pipe_loss_factor, restrictor_flow, throttle_open_area, valve_effective_area
 from .spec import EngineSpec
 
 GAMMA_MOTORED = 1.35       # polytropic exponent of the Woschni motored-pressure reference (Woschni 1967 uses a polytrope)
 KNOCK_END_FRACTION = 0.99  # end gas counted as consumed at 99 % burned
+# Runner wall friction is evaluated at the cycle-mean flow of one runner; the
+# friction factor varies as Re^-0.2 or less, so these reference values move it
+# by a few % at most (and the runner's loss by < 1 % of a dynamic head).
+FRICTION_VE_REF = 0.85     # volumetric efficiency of the reference flow [-] (restricted WOT level)
+FRICTION_T_EXH_REF = 1000.0  # exhaust-runner gas temperature for the viscosity [K]
 
 
 @dataclass(frozen=True)
@@ -84,6 +89,8 @@ class KernelInputs:
     gas: thermo.GasSet
     nstep: int
     ncyl: int
+    nseg_in: int = 1      # lumped segments per intake runner
+    nseg_ex: int = 1      # lumped segments per exhaust runner
 
 
 def _unwrapped_angles(nstep: int, ivc_deg: float) -> np.ndarray:
@@ -162,12 +169,25 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     par[L.P_RES_REC] = it.restrictor_recovery
     par[L.P_IR_A] = math.pi / 4.0 * it.runner_diameter_m**2
     par[L.P_IR_L] = it.runner_length_m
-    par[L.P_IR_K] = 1.0 + it.runner_loss_k          # + exit (dump) loss of one dynamic head
+    # runner loss factor [dynamic heads]: exit (dump) loss of one dynamic head +
+    # minor losses + Darcy wall friction f L/D at the cycle-mean runner flow
+    m_ref = FRICTION_VE_REF * op.p_amb_pa / (float(gas.r_specific[L.SP_A]) * op.t_amb_k) \
+        * g.displacement_m3 * op.speed_rpm / 120.0
+    par[L.P_IR_K] = 1.0 + float(pipe_loss_factor(
+        m_ref, op.t_amb_k, par[L.P_IR_A], it.runner_diameter_m, it.runner_length_m, it.runner_loss_k,
+        it.runner_roughness_m / it.runner_diameter_m))
     par[L.P_IR_INERTIA] = 1.0 if it.runner_inertia else 0.0
     par[L.P_ER_A] = math.pi / 4.0 * ex.runner_diameter_m**2
     par[L.P_ER_L] = ex.runner_length_m
-    par[L.P_ER_K] = 1.0 + ex.runner_loss_k
+    par[L.P_ER_K] = 1.0 + float(pipe_loss_factor(
+        m_ref * (1.0 + far), FRICTION_T_EXH_REF, par[L.P_ER_A], ex.runner_diameter_m, ex.runner_length_m,
+        ex.runner_loss_k, ex.runner_roughness_m / ex.runner_diameter_m))
     par[L.P_ER_INERTIA] = 1.0 if ex.runner_inertia else 0.0
+    # segments only exist with gas inertia; a quasi-steady runner is one resistance
+    nsi = it.runner_segments if it.runner_inertia else 1
+    nse = ex.runner_segments if ex.runner_inertia else 1
+    par[L.P_IR_NSEG] = nsi
+    par[L.P_ER_NSEG] = nse
     par[L.P_TP_CDA] = ex.tailpipe_cd * math.pi / 4.0 * ex.tailpipe_diameter_m**2
     par[L.P_KN_A] = kn.delay_coeff_s * (kn.octane_number / 100.0) ** kn.octane_exponent
     par[L.P_KN_N] = kn.pressure_exponent
@@ -183,19 +203,24 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     par[L.P_NET_EPS] = 1e-4   # ~10 Pa at 1 bar; results change < 0.05 % between 1e-3 and 1e-6
 
     offs = np.array([int(round(ph / step)) for ph in g.phase_deg()], dtype=np.int64)
-    nvol = n_volumes(ncyl)
+    nvol = n_volumes(ncyl, nsi, nse)
     vfix = np.zeros(nvol)
-    # Lumped runner: the inertance sits between two capacitances that share the
-    # runner's gas volume A*L: the fraction ``runner_volume_at_port`` with the
-    # port at the valve end, the rest with the plenum / collector.
-    v_ir = par[L.P_IR_A] * it.runner_length_m
-    v_er = par[L.P_ER_A] * ex.runner_length_m
+    # Lumped runner: each of its nseg segments is an inertance whose gas volume
+    # A*L/nseg is shared by the capacitances at its two ends (pi lumping).  Inner
+    # joints get half of each neighbouring segment; at the ends the fraction
+    # ``runner_volume_at_port`` of the end segment's volume goes with the port at
+    # the valve end, the rest with the plenum / collector.
+    v_is = par[L.P_IR_A] * it.runner_length_m / nsi
+    v_es = par[L.P_ER_A] * ex.runner_length_m / nse
     fi, fe = it.runner_volume_at_port, ex.runner_volume_at_port
-    vfix[ncyl:2 * ncyl] = it.port_volume_m3 + fi * v_ir
-    vfix[2 * ncyl:3 * ncyl] = ex.port_volume_m3 + fe * v_er
-    vfix[3 * ncyl] = it.plenum_volume_m3 + (1.0 - fi) * ncyl * v_ir
+    vfix[ncyl:2 * ncyl] = it.port_volume_m3 + fi * v_is
+    vfix[2 * ncyl:3 * ncyl] = ex.port_volume_m3 + fe * v_es
+    vfix[3 * ncyl] = it.plenum_volume_m3 + (1.0 - fi) * ncyl * v_is
     vfix[3 * ncyl + 1] = it.throttle_body_volume_m3
-    vfix[3 * ncyl + 2] = ex.collector_volume_m3 + (1.0 - fe) * ncyl * v_er
+    vfix[3 * ncyl + 2] = ex.collector_volume_m3 + (1.0 - fe) * ncyl * v_es
+    j0 = 3 * ncyl + 3
+    vfix[j0:j0 + ncyl * (nsi - 1)] = v_is
+    vfix[j0 + ncyl * (nsi - 1):] = v_es
     coeffs = np.ascontiguousarray(gas.coeffs, dtype=np.float64)
     if op.motored:  # no fuel: the "mixture" is air
         coeffs = coeffs.copy()
@@ -205,7 +230,7 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
         rsp[L.SP_M] = rsp[L.SP_A]
     return KernelInputs(par=par, tab=angle_tables(spec, op, nstep), offs=offs, coeffs=coeffs, rsp=rsp,
                         fuel_c=np.ascontiguousarray(gas.fuel_coeffs, dtype=np.float64), vfix=vfix, gas=gas,
-                        nstep=nstep, ncyl=ncyl)
+                        nstep=nstep, ncyl=ncyl, nseg_in=nsi, nseg_ex=nse)
 
 
 def estimate_plenum_pressure(spec: EngineSpec, ki: KernelInputs, ve_guess: float = 0.95) -> float:
@@ -247,7 +272,8 @@ def estimate_plenum_pressure(spec: EngineSpec, ki: KernelInputs, ve_guess: float
 def initial_state(spec: EngineSpec, ki: KernelInputs) -> tuple[np.ndarray, np.ndarray]:
     """A cold-start state: intake at the estimated plenum pressure, exhaust hot and full of products."""
     ncyl, nstep = ki.ncyl, ki.nstep
-    nvol = n_volumes(ncyl)
+    nsi, nse = ki.nseg_in, ki.nseg_ex
+    nvol = n_volumes(ncyl, nsi, nse)
     par = ki.par
     p_amb, t_amb = par[L.P_PAMB], par[L.P_TAMB]
     p_pl = estimate_plenum_pressure(spec, ki)
@@ -279,5 +305,10 @@ def initial_state(spec: EngineSpec, ki: KernelInputs) -> tuple[np.ndarray, np.nd
     fill(3 * ncyl, p_pl, t_amb, 1.0, 0.0, 0.0)
     fill(3 * ncyl + 1, 0.5 * (p_pl + p_amb), t_amb, 1.0, 0.0, 0.0)
     fill(3 * ncyl + 2, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
-    mr = np.zeros(2 * ncyl)
+    j0 = 3 * ncyl + 3
+    for i in range(j0, j0 + ncyl * (nsi - 1)):          # intake runner joints: plenum gas
+        fill(i, p_pl, t_amb, 1.0, 0.0, 0.0)
+    for i in range(j0 + ncyl * (nsi - 1), nvol):        # exhaust runner joints: hot products
+        fill(i, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
+    mr = np.zeros(ncyl * (nsi + nse))
     return vol, mr

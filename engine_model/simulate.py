@@ -90,18 +90,26 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
     return pts
 
 
-def _volume_name(k: int, ncyl: int) -> str:
+def _volume_name(k: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
     names = ["cylinder", "intake port", "exhaust port"]
     if k < 3 * ncyl:
         return f"{names[k // ncyl]} {k % ncyl + 1}"
-    return ["plenum", "throttle body", "exhaust collector"][k - 3 * ncyl]
+    if k < 3 * ncyl + 3:
+        return ["plenum", "throttle body", "exhaust collector"][k - 3 * ncyl]
+    j = k - 3 * ncyl - 3
+    for side, nseg in (("intake", nseg_in), ("exhaust", nseg_ex)):
+        nj = nseg - 1
+        if j < ncyl * nj:
+            return f"{side} runner {j // nj + 1}, joint {j % nj + 1}"
+        j -= ncyl * nj
+    return f"volume {k}"
 
 
-def _failure_text(code: int, ncyl: int) -> str:
+def _failure_text(code: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
     """Kernel failure code -> words: 100+k temperature out of range in volume k, 200+k negative mass."""
     kind, k = divmod(int(code), 100)
     what = {1: "temperature left the 150-4400 K range", 2: "negative mass"}.get(kind, f"code {code}")
-    return f"{what} in {_volume_name(k, ncyl)}"
+    return f"{what} in {_volume_name(k, ncyl, nseg_in, nseg_ex)}"
 
 
 def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: thermo.GasSet,
@@ -117,7 +125,9 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
     row["cycles_run"] = int(out[L.O_CYCLES])
     row.update({k: burn[k] for k in ("ca10_deg_atdc", "ca50_deg_atdc", "ca90_deg_atdc")})
     if fail:
-        row["status"] = f"failed: {_failure_text(fail, spec.geometry.n_cylinders)}"
+        nsi = spec.intake.runner_segments if spec.intake.runner_inertia else 1
+        nse = spec.exhaust.runner_segments if spec.exhaust.runner_inertia else 1
+        row["status"] = f"failed: {_failure_text(fail, spec.geometry.n_cylinders, nsi, nse)}"
         row["converged"] = False
         return row
     row["status"] = "ok" if row["converged"] else "not converged"

@@ -52,6 +52,12 @@ def _check(owner: str, name: str, value, lo=None, hi=None, lo_open=False, hi_ope
         raise ValueError(f"{owner}.{name} = {value!r} is outside the allowed range {lb}{lo_s}, {hi_s}{rb}")
 
 
+def _check_segments(owner: str, n):
+    """Runner segment count: an integer in [1, 8]."""
+    if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= 8:
+        raise ValueError(f"{owner}.runner_segments = {n!r} must be an integer in [1, 8]")
+
+
 @dataclass(frozen=True)
 class Geometry:
     """Cranktrain geometry.
@@ -190,14 +196,22 @@ class IntakeSpec:
 
     All lengths [m], volumes [m^3]; discharge coefficients and loss factors [-].
     ``restrictor_recovery`` is the fraction of the throat's dynamic pressure the
-    diffuser recovers (0 = plain orifice).  ``runner_loss_k`` is the total
-    pressure-loss factor of a runner in units of its dynamic head.
+    diffuser recovers (0 = plain orifice).  ``runner_loss_k`` is the runner's
+    minor (local) pressure-loss factor in units of its dynamic head: entry,
+    bends, obstructions; the exit (dump) loss of one dynamic head is added by the
+    model, and wall friction is computed from ``runner_roughness_m`` (Darcy,
+    Haaland friction factor at the instantaneous Reynolds number).
     ``runner_inertia`` switches the lumped gas-inertia (momentum) equation of the
     runners on; off makes them quasi-steady resistances.
     ``runner_volume_at_port`` is the fraction of a runner's gas volume lumped
     with the port (the rest goes to the plenum): 0 is the Helmholtz-resonator
     lumping (runner = neck, port + cylinder = cavity), 0.5 the symmetric
-    pi-network lumping of a pipe.
+    pi-network lumping of a pipe.  ``runner_segments`` splits each runner into
+    that many lumped segments in series (a staggered-grid discretisation of the
+    1D pipe: a momentum equation per segment, a gas volume at each joint), so the
+    runner carries its own compliance and its higher acoustic modes;
+    ``runner_volume_at_port`` then applies to the valve-end segment.  With
+    inertia off a runner is always a single quasi-steady resistance.
     """
 
     throttle_bore_m: float
@@ -217,6 +231,8 @@ class IntakeSpec:
     wall_temp_k: float = 320.0
     throttle_leak_area_m2: float = 3.0e-6
     runner_volume_at_port: float = 0.5
+    runner_segments: int = 1
+    runner_roughness_m: float = 0.0
 
     def __post_init__(self):
         o = "intake"
@@ -236,6 +252,8 @@ class IntakeSpec:
         _check(o, "wall_temp_k", self.wall_temp_k, 200.0, 600.0)
         _check(o, "throttle_leak_area_m2", self.throttle_leak_area_m2, 0.0, 1e-3)
         _check(o, "runner_volume_at_port", self.runner_volume_at_port, 0.0, 1.0)
+        _check_segments(o, self.runner_segments)
+        _check(o, "runner_roughness_m", self.runner_roughness_m, 0.0, 0.1 * self.runner_diameter_m)
 
 
 @dataclass(frozen=True)
@@ -245,7 +263,9 @@ class ExhaustSpec:
     ``tailpipe_diameter_m`` with ``tailpipe_cd`` sets the silencer/tailpipe
     effective flow area, i.e. the back pressure at a given flow.
     ``runner_volume_at_port`` as for the intake (fraction of the runner's gas
-    volume lumped with the exhaust port; the rest with the collector).
+    volume lumped with the exhaust port; the rest with the collector),
+    ``runner_segments`` (lumped segments in series per runner), and
+    ``runner_loss_k`` / ``runner_roughness_m`` (minor losses; wall friction).
     """
 
     port_volume_m3: float
@@ -257,6 +277,8 @@ class ExhaustSpec:
     tailpipe_cd: float
     runner_inertia: bool = True
     runner_volume_at_port: float = 0.5
+    runner_segments: int = 1
+    runner_roughness_m: float = 0.0
 
     def __post_init__(self):
         o = "exhaust"
@@ -268,6 +290,8 @@ class ExhaustSpec:
         _check(o, "tailpipe_diameter_m", self.tailpipe_diameter_m, 0.0, 0.3, lo_open=True)
         _check(o, "tailpipe_cd", self.tailpipe_cd, 0.0, 1.0, lo_open=True)
         _check(o, "runner_volume_at_port", self.runner_volume_at_port, 0.0, 1.0)
+        _check_segments(o, self.runner_segments)
+        _check(o, "runner_roughness_m", self.runner_roughness_m, 0.0, 0.1 * self.runner_diameter_m)
 
 
 @dataclass(frozen=True)

@@ -51,10 +51,10 @@ def test_ca50_of_papers_answer_is_in_the_mbt_window(table2):
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "Known gap: the lumped (0D) runners carry only the fundamental Helmholtz mode, so the "
-    "uncalibrated volumetric efficiency swings with speed (about -30 % at 8000-8450 rpm, +12 % at "
-    "11000 rpm) where the bench is flat near 0.85; see README 'Known gaps'.  Strict: passing "
-    "would fail this mark and force it to be removed."))
+    "Known gap: the uncalibrated runner tuning (lumped runners, geometry assumed, not measured) swings "
+    "the volumetric efficiency with speed (airflow about -28 % at 8000-8450 rpm, +13 % at 11000 rpm) "
+    "where the bench is flat near 0.85; segmenting the runners and explicit wall friction do not remove "
+    "it; see README 'Known gaps'.  Strict: passing would fail this mark and force it to be removed."))
 def test_airflow_and_torque_close_to_bench_before_calibration(table2):
     bench, sim = table2
     air_err = (sim["air_mass_flow_kg_h"] / bench["air_mass_flow_kg_h"] - 1).abs()

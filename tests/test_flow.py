@@ -108,3 +108,48 @@ def test_slider_crank_volumes():
     assert v(180.0) / v(0.0) == pytest.approx(g.compression_ratio, rel=1e-12)
     # finite rod: piston is past half stroke before 90 deg
     assert v(90.0) - v(0.0) > 0.5 * g.displacement_m3
+
+
+def _colebrook(re, rel_rough):
+    """Darcy friction factor from the implicit Colebrook-White equation, by fixed-point iteration."""
+    x = 8.0
+    for _ in range(100):
+        x = -2.0 * math.log10(rel_rough / 3.7 + 2.51 * x / re)
+    return 1.0 / x**2
+
+
+@pytest.mark.parametrize("re", [5e3, 2e4, 1e5, 1e6, 1e7])
+@pytest.mark.parametrize("rel_rough", [0.0, 1e-4, 1.5e-3, 1e-2])
+def test_friction_factor_matches_colebrook(re, rel_rough):
+    """Haaland's explicit form stays within 2 % of Colebrook-White over the turbulent range."""
+    from engine_model.cycle.flow import darcy_friction_factor
+    assert darcy_friction_factor(re, rel_rough) == pytest.approx(_colebrook(re, rel_rough), rel=0.02)
+
+
+def test_friction_factor_is_laminar_at_low_reynolds_number():
+    from engine_model.cycle.flow import darcy_friction_factor
+    assert darcy_friction_factor(500.0, 1e-3) == pytest.approx(64.0 / 500.0)
+
+
+def test_runner_loss_factor_is_minor_losses_plus_dump_plus_darcy_friction():
+    """The runner's steady-flow loss in dynamic heads: 1 (exit dump) + k_minor + f(Re) L/D.
+
+    Re of the cycle-mean runner flow, viscosity of air from Sutherland's law
+    written out here; f from Colebrook (independent of the Haaland form used).
+    """
+    from engine_model import OperatingPoint
+    from engine_model.cycle import layout as L
+    from engine_model.prepare import FRICTION_VE_REF, kernel_inputs
+    spec = default_spec()
+    it = spec.intake
+    op = OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4)
+    ki = kernel_inputs(spec, op)
+    rho = P0 / (R_AIR * T0)
+    mdot = FRICTION_VE_REF * rho * spec.geometry.displacement_m3 * 9000.0 / 120.0
+    mu = 1.458e-6 * T0**1.5 / (T0 + 110.4)
+    d = it.runner_diameter_m
+    re = 4.0 * mdot / (math.pi * d * mu)
+    f = _colebrook(re, it.runner_roughness_m / d)
+    k_expected = 1.0 + it.runner_loss_k + f * it.runner_length_m / d
+    assert ki.par[L.P_IR_K] == pytest.approx(k_expected, rel=0.01)
+    assert 0.1 < f * it.runner_length_m / d < 0.3     # friction is a small part of the runner loss

@@ -96,3 +96,11 @@ def test_unknown_key_is_refused():
     doc["geometry"]["bore_mm"] = 67
     with pytest.raises(ValueError, match="bore_mm"):
         spec_from_dict(doc, "x.toml")
+
+
+@pytest.mark.parametrize("value", [0, 9, 2.5, True])
+def test_runner_segments_must_be_a_small_integer(value):
+    doc = _doc()
+    doc["intake"]["runner_segments"] = value
+    with pytest.raises(ValueError, match=r"intake\.runner_segments"):
+        spec_from_dict(doc, "x.toml")

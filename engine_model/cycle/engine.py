@@ -43,9 +43,14 @@ from .network import _add_rate, _lin_between, _orifice_between, _solve_chain
 from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
 from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer
 
-def n_volumes(ncyl):
-    """Number of gas volumes for ``ncyl`` cylinders (cylinders, 2 ports each, plenum, throttle body, collector)."""
-    return 3 * ncyl + 3
+def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
+    """Number of gas volumes for ``ncyl`` cylinders.
+
+    Cylinders, 2 ports each, plenum, throttle body, collector, then the inner
+    joints of the segmented runners (``nseg - 1`` per runner; intake runners
+    first, runner by runner, then exhaust).
+    """
+    return 3 * ncyl + 3 + ncyl * (nseg_in - 1) + ncyl * (nseg_ex - 1)
 
 
 
@@ -76,36 +81,52 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
     acc[:] = 0.0
     rate[:] = 0.0
 
-    # ---- runners (intake k: plenum -> port k; exhaust k: port k -> collector)
+    # ---- runners (intake k: plenum -> port k; exhaust k: port k -> collector).
+    # Each runner is ``nseg`` lumped segments in series, a mass-flow state with
+    # its momentum equation per segment; the joints between segments are gas
+    # volumes (indices from icol + 1 on, see ``n_volumes``).  The loss factor k_r
+    # (exit dump, minor losses and wall friction, see ``prepare``) is spread evenly
+    # over the segments, so in steady flow the runner's pressure drop is
+    # k_r * m^2 / (2 rho A^2) whatever ``nseg``.
+    jnt = icol + 1
     for side in range(2):
         if side == 0:
             a_r = par[P_IR_A]
             l_r = par[P_IR_L]
             k_r = par[P_IR_K]
             inertia = par[P_IR_INERTIA] > 0.5
+            nseg = int(par[P_IR_NSEG])
+            m_first = 0
         else:
             a_r = par[P_ER_A]
             l_r = par[P_ER_L]
             k_r = par[P_ER_K]
             inertia = par[P_ER_INERTIA] > 0.5
+            nseg = int(par[P_ER_NSEG])
+            m_first = ncyl * int(par[P_IR_NSEG])
+        l_s = l_r / nseg
         for k in range(ncyl):
             if side == 0:
-                up = ipl
-                dn = ncyl + k
+                up_end = ipl
+                dn_end = ncyl + k
             else:
-                up = 2 * ncyl + k
-                dn = icol
-            idx = side * ncyl + k
-            if inertia:
-                m = mr[idx]
-                rho = props[up, PR_RHO] if m >= 0.0 else props[dn, PR_RHO]
-                dmr[idx] = a_r / l_r * (props[up, PR_P] - props[dn, PR_P]) \
-                    - k_r / (2.0 * rho * a_r * l_r) * m * abs(m)
-            else:
-                m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
-                dmr[idx] = 0.0
-            _transfer(up, dn, m, nvol, props, dvol)
-            _add_rate(up, dn, m, nvol, props, vcur, rate)
+                up_end = 2 * ncyl + k
+                dn_end = icol
+            for j in range(nseg):
+                up = up_end if j == 0 else jnt + j - 1
+                dn = dn_end if j == nseg - 1 else jnt + j
+                idx = m_first + k * nseg + j
+                if inertia:
+                    m = mr[idx]
+                    rho = props[up, PR_RHO] if m >= 0.0 else props[dn, PR_RHO]
+                    dmr[idx] = a_r / l_s * (props[up, PR_P] - props[dn, PR_P]) \
+                        - k_r / (2.0 * rho * a_r * l_r) * m * abs(m)
+                else:
+                    m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
+                    dmr[idx] = 0.0
+                _transfer(up, dn, m, nvol, props, dvol)
+                _add_rate(up, dn, m, nvol, props, vcur, rate)
+            jnt += nseg - 1
 
     # ---- exhaust collector -> ambient.  The tailpipe beyond the collector is
     # full of exhaust gas, so gas drawn back in has the collector's composition
@@ -249,8 +270,9 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
         Fuel-vapour coefficients.
     vol : (nvol, NVCOL) float64
         Initial state of every volume; overwritten with the final state.
-    mr : (2*ncyl,) float64
-        Initial runner mass flows [kg/s]; overwritten.
+    mr : (ncyl * (nseg_in + nseg_ex),) float64
+        Initial runner segment mass flows [kg/s] (intake runners, then exhaust,
+        each runner's segments from its upstream end); overwritten.
     vfix : (nvol,) float64
         Volumes [m^3] (cylinder entries ignored).
     out : (NOUT,) float64

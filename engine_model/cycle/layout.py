@@ -44,7 +44,7 @@ P_RES_CDA = 18      # restrictor effective throat area [m2]
 P_RES_REC = 19      # diffuser pressure recovery [-]
 P_IR_A = 20         # intake runner cross-section [m2]
 P_IR_L = 21         # intake runner length [m]
-P_IR_K = 22         # intake runner loss factor incl. exit loss [-]
+P_IR_K = 22         # intake runner loss factor: exit dump + minor losses + wall friction [-]
 P_IR_INERTIA = 23   # 1 = momentum equation, 0 = quasi-steady
 P_ER_A = 24
 P_ER_L = 25
@@ -61,9 +61,11 @@ P_IDX_IVC = 35      # local step index of IVC
 P_IDX_EVO = 36
 P_IDX_SOC = 37
 P_MINCYC = 38       # minimum cycles before convergence may be declared
+P_IR_NSEG = 39      # lumped segments per intake runner (>= 1; 1 when quasi-steady)
 P_AITKEN = 40       # 1 = accelerate the slow cycle-to-cycle mode by Aitken extrapolation
 P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
-NPAR = 42
+P_ER_NSEG = 42      # lumped segments per exhaust runner
+NPAR = 43
 
 # ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
 T_V = 0        # cylinder volume [m3]
