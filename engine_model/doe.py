@@ -910,7 +910,7 @@ def save_plan(plan: pd.DataFrame, name: str, directory: str | Path = "doe_plans"
     """
     if not name or any(not (ch.isalnum() or ch in "_-.") for ch in name):
         raise ValueError(f"save_plan: name {name!r} may only use letters, digits, '_', '-', '.'")
-    _validate_plan(plan, f"save_plan({name!r})")
+    validate_plan(plan, f"save_plan({name!r})")
     meta = {k: v for k, v in plan.attrs.items()}
     meta.setdefault("generator", None)
     meta.setdefault("seed", None)
@@ -934,7 +934,7 @@ def save_plan(plan: pd.DataFrame, name: str, directory: str | Path = "doe_plans"
     return {**paths, "metadata": meta}
 
 
-def _validate_plan(plan: pd.DataFrame, source: str, spec: EngineSpec | None = None) -> pd.DataFrame:
+def validate_plan(plan: pd.DataFrame, source: str, spec: EngineSpec | None = None) -> pd.DataFrame:
     """ValueError naming source, row, column and value for a plan that breaks the contract."""
     from .simulate import validate_points
 
@@ -1012,7 +1012,7 @@ def load_plan(path: str | Path, spec: EngineSpec | None = None) -> pd.DataFrame:
     for c in _TEXT_COLUMNS:
         if c in df.columns and c != "point_id":
             df[c] = df[c].astype(object).where(df[c].notna(), "").astype(str)
-    _validate_plan(df, str(p), spec)
+    validate_plan(df, str(p), spec)
     df.attrs = dict(meta)
     stored = meta.get("plan_hash")
     if stored and stored != plan_hash(df):

@@ -49,15 +49,19 @@ def write_json(obj, path) -> Path:
     return write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n", path)
 
 
-def read_table(path) -> pd.DataFrame:
-    """Read a CSV or Parquet table; ValueError naming the file on failure."""
+def read_table(path, text_columns=("point_id",)) -> pd.DataFrame:
+    """Read a CSV or Parquet table; ValueError naming the file on failure.
+
+    ``text_columns`` present in a CSV are read as text (an id "007" stays "007").
+    """
     p = Path(path)
     if not p.is_file():
         raise ValueError(f"{p}: file not found")
     suffix = p.suffix.lower()
     try:
         if suffix == ".csv":
-            return pd.read_csv(p)
+            head = pd.read_csv(p, nrows=0).columns
+            return pd.read_csv(p, dtype={c: str for c in text_columns if c in head})
         if suffix in (".parquet", ".pq"):
             return pd.read_parquet(p)
     except Exception as exc:  # noqa: BLE001 - report any parser failure with the file name

@@ -88,8 +88,9 @@ def plan_flow(kind: str, name: str, out_dir: str = "doe_plans", n: int = 64, see
     if wiebe_grid:
         plan = doe.wiebe_grid(plan)
         meta["wiebe_grid"] = True
-    paths = doe.save_plan(plan, name, directory=out_dir, metadata=meta)
-    return {"paths": [str(p) for p in paths], "points": len(plan), "metadata": meta}
+    saved = doe.save_plan(plan, name, directory=out_dir, metadata=meta)
+    return {"paths": [str(saved[k]) for k in ("parquet", "csv", "meta")], "points": len(plan),
+            "metadata": saved["metadata"]}
 
 
 def add_plan_arguments(p: argparse.ArgumentParser) -> None:

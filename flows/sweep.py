@@ -44,6 +44,7 @@ from distributed import as_completed as dask_as_completed  # noqa: E402
 
 from engine_model import SolverSettings, __version__, load_spec  # noqa: E402
 from engine_model.simulate import simulate, validate_points  # noqa: E402  (installed module: pickled by reference)
+from engine_model.doe import validate_plan  # noqa: E402
 from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 
 DEFAULT_WORKERS = 2
@@ -68,16 +69,8 @@ def prepare_plan(plan: pd.DataFrame, spec, source: str = "plan") -> pd.DataFrame
     if "point_id" not in pts.columns:
         width = max(5, len(str(len(pts))))
         pts.insert(0, "point_id", [f"p{i:0{width}d}" for i in range(len(pts))])
-    ids = pts["point_id"]
-    if ids.isna().any():
-        i = int(ids.isna().to_numpy().nonzero()[0][0])
-        raise ValueError(f"{source}: row {i}, column 'point_id': empty value")
-    ids = ids.astype(str)
-    dup = ids.duplicated(keep="first").to_numpy()
-    if dup.any():
-        i = int(dup.nonzero()[0][0])
-        first = int((ids == ids.iloc[i]).to_numpy().nonzero()[0][0])
-        raise ValueError(f"{source}: row {i}, column 'point_id': value {ids.iloc[i]!r} duplicates row {first}")
+    validate_plan(pts, source, spec)   # point_id: present, unique
+    ids = pts["point_id"].astype(str)
     pts["point_id"] = ids.to_numpy(dtype=object)
     pts["plan_row"] = range(len(pts))
     return pts
