@@ -86,3 +86,41 @@ def plot_traces(spec, bench_row, bdur_10_90: float, wiebe_m: float, solver: Solv
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def plot_operating_map(res: pd.DataFrame, path: Path, title: str = "") -> None:
+    """Heatmaps over throttle x speed of brake torque, BMEP and knock index, with the DOE feasibility flags.
+
+    ``res`` holds one row per (throttle_pct, speed_rpm) site with the result
+    columns and, optionally, ``infeasible_reason`` from :func:`engine_model.doe.feasibility`
+    (knock-limited sites marked K, near-zero-BMEP sites Z, as in the paper's Figure 1).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    th = np.sort(res["throttle_pct"].unique())
+    sp = np.sort(res["speed_rpm"].unique())
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    panels = [("brake_torque_nm", "brake torque at crank [Nm]", "viridis"),
+              ("bmep_bar", "BMEP [bar]", "viridis"), ("knock_index", "knock index [-] (>= 1: knock)", "magma_r")]
+    for ax, (col, label, cmap) in zip(axes, panels):
+        grid = res.pivot_table(index="throttle_pct", columns="speed_rpm", values=col).reindex(index=th, columns=sp)
+        im = ax.imshow(grid.to_numpy(float), origin="lower", aspect="auto", cmap=cmap,
+                       extent=(-0.5, len(sp) - 0.5, -0.5, len(th) - 0.5))
+        fig.colorbar(im, ax=ax, label=label)
+        ax.set_xticks(range(len(sp)), [f"{s / 1000:g}" for s in sp])
+        ax.set_yticks(range(len(th)), [f"{t:g}" for t in th])
+        ax.set_xlabel("speed [1000 rpm]")
+        ax.set_ylabel("throttle [%]")
+        if "infeasible_reason" in res.columns:
+            for _, r in res.iterrows():
+                mark = {"knock-limited": "K", "near-zero BMEP": "Z"}.get(str(r["infeasible_reason"]), "")
+                if mark:
+                    ax.text(int(np.searchsorted(sp, r["speed_rpm"])), int(np.searchsorted(th, r["throttle_pct"])),
+                            mark, ha="center", va="center", color="w", fontsize=8, fontweight="bold")
+    fig.suptitle(title or "Operating map: K = knock-limited at the MBT spark estimate, Z = near-zero BMEP")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

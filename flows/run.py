@@ -1,6 +1,7 @@
 """The ``run`` flow: the whole pipeline so far, on the embedded R6 spec and the packaged bench data.
 
     bench data -> plan of the bench points -> sweep (Dask) -> simulated vs measured report
+    DOE full factorial on the ECU grid -> feasibility (knock / near-zero BMEP) -> sweep -> operating map
 
 Everything lands in one run folder, written as ``<folder>.partial/`` and renamed
 when complete (an interrupted run never looks finished; running the same
@@ -22,11 +23,15 @@ from .sweep import DEFAULT_WORKERS, dask_runner, sweep_flow
 
 from prefect import flow  # noqa: E402
 
-from engine_model import SolverSettings, __version__, load_spec  # noqa: E402
+from engine_model import SolverSettings, __version__, doe, load_spec  # noqa: E402
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.io import write_csv, write_json, write_parquet, write_text  # noqa: E402
-from engine_model.report import comparison_table, plot_comparison, plot_traces  # noqa: E402
+from engine_model.report import comparison_table, plot_comparison, plot_operating_map, plot_traces  # noqa: E402
 from flows import store  # noqa: E402
+
+
+MAP_SPEEDS = tuple(range(3000, 13001, 1000))       # [rpm]
+MAP_THROTTLES = (10, 20, 30, 40, 60, 80, 100)     # [%]
 
 
 def default_run_dir(tag: str) -> Path:
@@ -56,12 +61,25 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, bdur_1
         final.rename(work)          # update in place: the sweeps inside resume
     work.mkdir(parents=True, exist_ok=True)
 
+    runner = dask_runner(workers, dask_address)
+
+    # 1) the bench points at the given combustion setting
     plan = bench_plan(meas, bdur_10_90, wiebe_m)
     plan_path = write_parquet(plan, work / "plans" / "bench_points.parquet")
     sweep_dir = work / "bench_sweep"
-    sweep = sweep_flow.with_options(task_runner=dask_runner(workers, dask_address))
+    sweep = sweep_flow.with_options(task_runner=runner)
     sweep_man = sweep(plan=str(plan_path), out=str(sweep_dir), spec=spec, step_deg=step_deg, progress=progress)
     sim = store.read_results(sweep_dir)
+
+    # 2) the operating map: an ECU-grid full factorial at the MBT spark and combustion estimates, the
+    #    knock-limited and near-zero-BMEP zones flagged by a quick model check (paper, Figure 1), swept
+    map_plan = doe.with_combustion(doe.bench_order(doe.feasibility(
+        doe.full_factorial(speed_rpm=MAP_SPEEDS, throttle_pct=MAP_THROTTLES), spec=eng)))
+    saved = doe.save_plan(map_plan, "map_full_factorial", directory=work / "plans")
+    map_man = sweep(plan=str(saved["parquet"]), out=str(work / "map_sweep"), spec=spec, step_deg=step_deg,
+                    progress=progress)
+    map_res = store.read_results(work / "map_sweep")
+    plot_operating_map(map_res, work / "operating_map.png")
 
     cmp_ = comparison_table(meas, sim, eta_trans)
     write_parquet(sim, work / "simulated.parquet")
@@ -78,7 +96,9 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, bdur_1
         "bench": "packaged Table 2" if bench is None else str(bench), "bdur_10_90_deg": bdur_10_90,
         "wiebe_m": wiebe_m, "eta_trans": eta_trans, "step_deg": step_deg, "points": len(sim),
         "not_converged": int((~sim["converged"].astype(bool)).sum()),
-        "sweeps": {"bench_sweep": {k: sweep_man[k] for k in ("plan_hash", "counts", "timings", "dask")}},
+        "sweeps": {name: {k: m[k] for k in ("plan_hash", "counts", "timings", "dask")}
+                   for name, m in (("bench_sweep", sweep_man), ("map_sweep", map_man))},
+        "map_infeasible": map_plan["infeasible_reason"].value_counts().to_dict(),
         "wall_time_s": round(time.perf_counter() - t0, 2),
         "created": _dt.datetime.now().isoformat(timespec="seconds"), "status": "complete",
     }
@@ -89,7 +109,8 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, bdur_1
     if progress:
         print(f"\nTable 2 (WOT, lambda 0.9), BDUR10-90 = {bdur_10_90:g} deg, m = {wiebe_m:g}, measured torque/"
               f"power divided by eta_trans = {eta_trans:g}:\n\n{text}\n\nresults: {final}/ (simulated.parquet, "
-              "comparison.csv, wot_comparison.png, pressure_traces_*.png, bench_sweep/, manifest.json)",
+              "comparison.csv, wot_comparison.png, pressure_traces_*.png, operating_map.png, plans/, bench_sweep/, "
+              "map_sweep/, manifest.json)",
               file=sys.stdout)
     return man
 
