@@ -46,6 +46,7 @@ def small_plan(n_ops: int = 3, per_op: int = 4) -> pd.DataFrame:
     for i, speed in enumerate([8000.0, 9500.0, 11000.0, 6000.0, 10000.0][:n_ops]):
         for j in range(per_op):
             rows.append({"point_id": f"op{i}-w{j}", "speed_rpm": speed, "throttle_pct": 100.0,
-                         "spark_deg_btdc": 40.0 + 2 * i, "lambda": 0.9, "bdur_10_90_deg": 20.0 + 6.0 * j,
-                         "wiebe_m": 3.0 + j})
+                         "spark_deg_btdc": 40.0 + 2 * i, "lambda": 0.9,
+                         "bdur_10_90_deg": 20.0 + 30.0 * j / max(per_op - 1, 1),
+                         "wiebe_m": 3.0 + 3.0 * j / max(per_op - 1, 1)})
     return pd.DataFrame(rows)

@@ -110,8 +110,8 @@ def test_interrupted_sweep_resumes_without_recompute(prefect_api, tmp_path):
     src = tmp_path / "plan.csv"
     plan.to_csv(src, index=False)
     out = tmp_path / "out"
-    cmd = MBC + ["sweep", "--plan", str(src), "--out", str(out), "--workers", "1", "--chunk-size", "1",
-                 "--step-deg", "1", "--tolerance", "0.01"]
+    # production solver settings here: chunks long enough (~0.2 s) that the kill lands mid-sweep
+    cmd = MBC + ["sweep", "--plan", str(src), "--out", str(out), "--workers", "1", "--chunk-size", "1"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         _wait_for(lambda: len(_parts(out)) >= 3, 120, "three finished chunks")
