@@ -1028,7 +1028,9 @@ def write_example_plans(directory: str | Path = "doe_plans", spec: EngineSpec | 
     100 % x 3000-13000 rpm in 2000 rpm steps (42 points), spark and lambda
     from the priors, flagged by :func:`feasibility` with the quick model (not
     dropped), in bench order.  ``r6_sobol_64``: 64 scrambled Sobol' points
-    over :data:`DEFAULT_BOUNDS`, seed 2012, in bench order.  Takes ~10 s.
+    over :data:`DEFAULT_BOUNDS`, seed 2012, in bench order.  Both carry the
+    Wiebe columns of :func:`combustion_estimate` (:func:`with_combustion`), so
+    ``mbc sweep`` runs them as they are.  Takes ~10 s.
 
     Returns
     -------
@@ -1036,7 +1038,7 @@ def write_example_plans(directory: str | Path = "doe_plans", spec: EngineSpec | 
         name -> :func:`save_plan` result.
     """
     ff = full_factorial(speed_rpm=range(3000, 13001, 2000), throttle_pct=(5, 10, 20, 40, 60, 80, 100))
-    ff = bench_order(feasibility(ff, spec=spec))
-    sb = bench_order(sobol(64, seed=2012))
+    ff = with_combustion(bench_order(feasibility(ff, spec=spec)))
+    sb = with_combustion(bench_order(sobol(64, seed=2012)))
     return {"r6_full_factorial": save_plan(ff, "r6_full_factorial", directory),
             "r6_sobol_64": save_plan(sb, "r6_sobol_64", directory)}
