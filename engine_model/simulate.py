@@ -45,6 +45,14 @@ _RANGES = {
 }
 
 
+SPEC_PREFIX = "spec."   # plan columns "spec.<section>.<field>" override the engine spec for that row
+
+
+def spec_columns(points: pd.DataFrame) -> list[str]:
+    """The spec-override columns of a table (``spec.<section>.<field>``)."""
+    return [c for c in points.columns if isinstance(c, str) and c.startswith(SPEC_PREFIX)]
+
+
 def _row_label(points: pd.DataFrame, i: int) -> str:
     pid = f" (point_id {points['point_id'].iloc[i]!r})" if "point_id" in points.columns else ""
     return f"row {i}{pid}"
@@ -87,6 +95,24 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
             raise ValueError(f"{source}: {_row_label(pts, i)}, column '{col}': value {vals[i]:g} is outside "
                              f"{lb}{lo:g}, {hi:g}]")
         pts[col] = vals
+    ov_cols = spec_columns(pts)
+    for col in ov_cols:
+        vals = pd.to_numeric(pts[col], errors="coerce").to_numpy(dtype=float)
+        bad = np.flatnonzero(~np.isfinite(vals))
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"{source}: {_row_label(pts, i)}, column '{col}': value {points[col].iloc[i]!r} "
+                             "is not a finite number")
+        pts[col] = vals
+    if ov_cols:
+        seen = set()
+        for i, vals in enumerate(pts[ov_cols].itertuples(index=False, name=None)):
+            if vals not in seen:
+                seen.add(vals)
+                try:
+                    spec.with_values(dict(zip((c[len(SPEC_PREFIX):] for c in ov_cols), vals)))
+                except ValueError as exc:
+                    raise ValueError(f"{source}: {_row_label(pts, i)}: {exc}") from None
     return pts
 
 
@@ -215,8 +241,8 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     return row, (vol, mr)
 
 
-def _gas_key(op: OperatingPoint) -> tuple:
-    return (op.speed_rpm, op.throttle_pct, op.lam, op.p_amb_pa, op.t_amb_k)
+def _gas_key(op: OperatingPoint, overrides: tuple = ()) -> tuple:
+    return (op.speed_rpm, op.throttle_pct, op.lam, op.p_amb_pa, op.t_amb_k, overrides)
 
 
 def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = SolverSettings(),
@@ -242,24 +268,38 @@ def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = So
 
     Notes
     -----
-    Consecutive rows with the same speed, throttle, lambda and ambient state
-    start from the previous row's converged gas-exchange state (a Wiebe sweep
-    at one operating point then costs a few cycles per row).
+    Columns named ``spec.<section>.<field>`` (e.g. ``spec.intake.restrictor_cd``)
+    override that field of the engine spec for their row (calibration and
+    effect studies sweep spec values like operating conditions).
+
+    Consecutive rows with the same speed, throttle, lambda, ambient state and
+    spec overrides start from the previous row's converged gas-exchange state
+    (a Wiebe sweep at one operating point then costs a few cycles per row).
     """
     pts = validate_points(spec, points)
+    ov_cols = spec_columns(pts)
+    specs: dict[tuple, EngineSpec] = {(): spec}
+    for i, vals in enumerate(pts[ov_cols].itertuples(index=False, name=None) if ov_cols else []):
+        if vals not in specs:
+            try:
+                specs[vals] = spec.with_values(dict(zip((c[len(SPEC_PREFIX):] for c in ov_cols), vals)))
+            except ValueError as exc:
+                raise ValueError(f"points: {_row_label(pts, i)}: {exc}") from None
     rows = []
     state, key = None, None
     n = len(pts)
     for i in range(n):
         r = pts.iloc[i]
+        ov = tuple(r[c] for c in ov_cols)
+        spec_i = specs[ov]
         op = OperatingPoint(speed_rpm=float(r["speed_rpm"]), throttle_pct=float(r["throttle_pct"]),
                             spark_deg_btdc=float(r["spark_deg_btdc"]), lam=float(r["lambda"]),
                             bdur_10_90_deg=float(r["bdur_10_90_deg"]), wiebe_m=float(r["wiebe_m"]),
                             wiebe_a=float(r["wiebe_a"]), p_amb_pa=float(r["p_amb_pa"]),
                             t_amb_k=float(r["t_amb_k"]))
-        k = _gas_key(op)
+        k = _gas_key(op, ov)
         t0 = time.perf_counter()
-        row, new_state = simulate_point(spec, op, solver, state if k == key else None)
+        row, new_state = simulate_point(spec_i, op, solver, state if k == key else None)
         row["sim_time_s"] = time.perf_counter() - t0
         if row["status"].startswith("failed"):
             state, key = None, None

@@ -451,6 +451,41 @@ class EngineSpec:
         """Copy with whole sections replaced, e.g. ``spec.replace(intake=new_intake)``."""
         return dataclasses.replace(self, **sections)
 
+    def with_values(self, values: dict) -> "EngineSpec":
+        """Copy with single fields changed by dotted name, e.g. ``{"intake.restrictor_cd": 0.95}``.
+
+        Every changed section is re-validated; a ValueError names the key and
+        the value when the name is unknown or the value is out of range.
+        """
+        changes: dict[str, dict] = {}
+        for key, val in values.items():
+            section, _, field = key.partition(".")
+            sec = getattr(self, section, None) if section != "sources" else None
+            if not field or sec is None or not dataclasses.is_dataclass(sec) or \
+                    field not in {f.name for f in dataclasses.fields(sec)}:
+                raise ValueError(f"spec override {key!r}: no such field (expected '<section>.<field>', e.g. "
+                                 "'intake.restrictor_cd')")
+            cur = getattr(sec, field)
+            if isinstance(cur, bool):
+                val = bool(val)
+            elif isinstance(cur, int):
+                if float(val) != int(val):
+                    raise ValueError(f"spec override {key!r}: value {val!r} must be a whole number")
+                val = int(val)
+            elif isinstance(cur, float):
+                val = float(val)
+            else:
+                raise ValueError(f"spec override {key!r}: field of type {type(cur).__name__} cannot be overridden "
+                                 "by a number")
+            changes.setdefault(section, {})[field] = val
+        new = {}
+        for section, fields in changes.items():
+            try:
+                new[section] = dataclasses.replace(getattr(self, section), **fields)
+            except ValueError as exc:
+                raise ValueError(f"spec override {sorted(section + '.' + f for f in fields)}: {exc}") from None
+        return dataclasses.replace(self, **new)
+
 
 # --------------------------------------------------------------------------- loading
 

@@ -86,3 +86,34 @@ def test_packaged_bench_data_is_table2():
     assert list(b["speed_rpm"]) == [8000, 8450, 9000, 9500, 10000, 10500, 11000]
     assert (b["throttle_pct"] == 100).all() and (b["lambda"] == 0.9).all()
     assert b.loc[b.speed_rpm == 9000, "brake_power_kw"].item() == 41.5
+
+
+def test_spec_override_columns_change_only_their_rows():
+    import dataclasses
+
+    from engine_model import default_spec, simulate
+
+    spec = default_spec()
+    base = {"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
+            "bdur_10_90_deg": 24.0, "wiebe_m": 6.4}
+    pts = pd.DataFrame([base, base]).assign(**{"spec.intake.restrictor_cd": [spec.intake.restrictor_cd, 0.80]})
+    res = simulate(spec, pts)
+    # row 0 overrides with the spec's own value: identical to no override
+    plain = simulate(spec, pd.DataFrame([base]))
+    assert res["air_mass_flow_kg_h"].iloc[0] == pytest.approx(plain["air_mass_flow_kg_h"].iloc[0], rel=1e-12)
+    # row 1 equals a run on a spec changed the ordinary way, and a narrower restrictor passes less air
+    narrow = spec.replace(intake=dataclasses.replace(spec.intake, restrictor_cd=0.80))
+    ref = simulate(narrow, pd.DataFrame([base]))
+    assert res["air_mass_flow_kg_h"].iloc[1] == pytest.approx(ref["air_mass_flow_kg_h"].iloc[0], rel=1e-12)
+    assert res["air_mass_flow_kg_h"].iloc[1] < res["air_mass_flow_kg_h"].iloc[0]
+
+
+def test_bad_spec_override_names_row_and_key():
+    from engine_model import default_spec, simulate
+
+    base = {"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
+            "bdur_10_90_deg": 24.0, "wiebe_m": 6.4}
+    with pytest.raises(ValueError, match=r"row 1.*'intake.restrictor_cd'"):
+        simulate(default_spec(), pd.DataFrame([base, base]).assign(**{"spec.intake.restrictor_cd": [0.9, -1.0]}))
+    with pytest.raises(ValueError, match=r"row 0.*'intake.no_such_field'.*no such field"):
+        simulate(default_spec(), pd.DataFrame([base]).assign(**{"spec.intake.no_such_field": [1.0]}))
