@@ -353,7 +353,7 @@ def constant_cp_gas_set(gamma: float, r_specific: float, heat_release_j_per_kg_m
 
 
 # ---------------------------------------------------------------- numba kernels over one (2, 7) block
-_jit = numba.njit(cache=True, fastmath=False)
+_jit = numba.njit(cache=True, fastmath=False, _nrt=False)
 
 
 @_jit

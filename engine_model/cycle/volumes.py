@@ -17,7 +17,7 @@ AC_N = 6
 
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
     """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
     for k in range(nvol):
@@ -55,7 +55,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
     return 0
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _transfer(i, j, mdot, nvol, props, dvol):
     """Move ``mdot`` [kg/s] from i to j (negative: j to i) with the upstream composition and enthalpy."""
     u = i if mdot >= 0.0 else j
@@ -75,7 +75,7 @@ def _transfer(i, j, mdot, nvol, props, dvol):
         dvol[j, V_U] += fh
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
     """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
     if m >= 0.0:
@@ -95,7 +95,7 @@ def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
         _transfer(ip, k, m, nvol, props, dvol)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _set_ambient(props, amb, par, coeffs, rsp):
     t = par[P_TAMB]
     c = coeffs[SP_A]
