@@ -2,7 +2,7 @@
 
 from numba import njit
 
-from ..thermo import cp_mass, h_mass, mixture_state
+from ..thermo import cp_mass, h_mass, mixture_tcphr
 from .layout import *  # noqa: F401,F403  (index constants)
 
 # property columns of the scratch array ``props``
@@ -32,10 +32,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         ya = ma / m
         ym = mm / m
         yp = mp / m
-        mixture_state(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T], cbuf)
-        t = cbuf[0]
-        cp = cbuf[1]
-        r = cbuf[3]
+        t, cp, h, r = mixture_tcphr(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T])
         if not (t > 150.0 and t < 4400.0):
             return 100 + k
         vol[k, V_T] = t
@@ -46,7 +43,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         props[k, PR_T] = t
         props[k, PR_R] = r
         props[k, PR_G] = g
-        props[k, PR_H] = cbuf[2]
+        props[k, PR_H] = h
         props[k, PR_YA] = ya
         props[k, PR_YM] = ym
         props[k, PR_YP] = yp
