@@ -353,7 +353,7 @@ def constant_cp_gas_set(gamma: float, r_specific: float, heat_release_j_per_kg_m
 
 
 # ---------------------------------------------------------------- numba kernels over one (2, 7) block
-_jit = numba.njit(cache=True, fastmath=False)
+_jit = numba.njit(cache=True, fastmath=False, _nrt=False)
 
 
 @_jit
@@ -456,6 +456,25 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
     out : (4,) float64
         Receives T [K], cp [J/(kg K)], h [J/kg], R [J/(kg K)].
     """
+    t, cp, h, r = mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess)
+    out[0] = t
+    out[1] = cp
+    out[2] = h
+    out[3] = r
+
+
+# Newton on u(T) stops once a step is below this fraction of T: the error left
+# after it is ~ (dcv/dT)/(2 cv) * step^2 < 1e-8 K for any gas here.
+_NEWTON_RTOL = 1e-6
+
+
+@_jit
+def mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess):
+    """(T, cp, h, R) of a three-species mixture from its specific internal energy; see ``mixture_state``.
+
+    Scalar-returning form used by the cycle kernel.  Newton from ``t_guess``,
+    re-mixing the coefficients if the iterate crosses ``T_MID``; h = u + R T.
+    """
     r = y_a * rsp[0] + y_m * rsp[1] + y_p * rsp[2]
     T = t_guess if (t_guess >= _T_MIN and t_guess <= _T_MAX) else T_MID
     k = 0 if T < T_MID else 1
@@ -474,11 +493,9 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
             c0, c1, c2, c3, c4, c5 = _mix_range(coeffs, k, y_a, y_m, y_p)
             T = t_new
             continue
-        done = abs(t_new - T) <= 1e-9 * t_new
+        done = abs(t_new - T) <= _NEWTON_RTOL * t_new
         T = t_new
         if done:
             break
-    out[0] = T
-    out[1] = c0 + T * (c1 + T * (c2 + T * (c3 + T * c4)))
-    out[2] = T * (c0 + T * (c1 / 2.0 + T * (c2 / 3.0 + T * (c3 / 4.0 + T * c4 / 5.0)))) + c5
-    out[3] = r
+    cp = c0 + T * (c1 + T * (c2 + T * (c3 + T * c4)))
+    return T, cp, u + r * T, r

@@ -9,7 +9,7 @@ from .layout import FASTMATH
 P_STD_PA = 101325.0  # 1 atm, the pressure unit of the Douaud-Eyzat correlation
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def woschni_velocity(c1, c2, mean_piston_speed, vd, t_ref, p_ref, v_ref, p, p_motored):
     """Woschni characteristic gas velocity [m/s].
 
@@ -25,7 +25,7 @@ def woschni_velocity(c1, c2, mean_piston_speed, vd, t_ref, p_ref, v_ref, p, p_mo
     return w
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def woschni_coefficient(coeff_b, p, t_gas, w):
     """Woschni heat-transfer coefficient [W/(m^2 K)].
 
@@ -35,19 +35,19 @@ def woschni_coefficient(coeff_b, p, t_gas, w):
     return coeff_b * math.exp(0.8 * math.log(p * 1e-3 * w) - 0.55 * math.log(t_gas))
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def wall_heat_rate(h, t_gas, a_head, t_head, a_piston, t_piston, a_liner, t_liner):
     """Heat flow from gas to walls [W] = h * sum(A_i (T - T_wall,i))."""
     return h * (a_head * (t_gas - t_head) + a_piston * (t_gas - t_piston) + a_liner * (t_gas - t_liner))
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def end_gas_temperature(p, p_ref, t_ref, exponent):
     """Unburned end-gas temperature [K], isentropic from the reference state: T_r*(p/p_r)^((g-1)/g)."""
     return t_ref * math.exp(exponent * math.log(p / p_ref))
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def ignition_delay(p, t_unburned, delay_coeff_s, pressure_exponent, activation_temp_k):
     """Douaud-Eyzat ignition delay [s] = A' * (p/1 atm)^-n * exp(B/T_u).
 

@@ -54,7 +54,7 @@ def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
 
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
             vcur, dvol, dmr, acc, rate, E, M, rhs, nodes, elist):
     """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.

@@ -17,13 +17,13 @@ from numba import njit
 from .layout import FASTMATH
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def critical_pressure_ratio(gamma):
     """Throat-to-stagnation pressure ratio at sonic flow, (2/(g+1))^(g/(g-1)) [-]."""
     return (2.0 / (gamma + 1.0)) ** (gamma / (gamma - 1.0))
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def orifice_flow(cda, p_up, t_up, r_up, gamma, p_throat):
     """Isentropic mass flow through an orifice, choked below the critical ratio.
 
@@ -63,7 +63,7 @@ def orifice_flow(cda, p_up, t_up, r_up, gamma, p_throat):
     return cda * p_up / math.sqrt(r_up * t_up) * math.sqrt(psi2)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def restrictor_throat_pressure(p_up, p_down, recovery):
     """Throat static pressure of a venturi whose diffuser recovers a fraction of the throat dynamic head.
 
@@ -73,7 +73,7 @@ def restrictor_throat_pressure(p_up, p_down, recovery):
     return pt if pt > 0.0 else 0.0
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def restrictor_flow(cda, recovery, p_up, t_up, r_up, gamma, p_down):
     """Forward mass flow through the restrictor venturi [kg/s] (0 if p_down >= p_up); recovery 0 is a plain orifice.
 
@@ -191,7 +191,7 @@ def pipe_loss_factor(mdot, t, area, dia, length, k_minor, rel_roughness):
     return k_minor + darcy_friction_factor(re, rel_roughness) * length / dia
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def orifice_flow_lin(cda, p_up, t_up, r_up, gamma, p_throat, eps):
     """Orifice flow and its partial derivatives: (mdot, dmdot/dp_up, dmdot/dp_throat).
 

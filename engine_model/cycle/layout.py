@@ -8,6 +8,14 @@ Module-level integers are compile-time constants for numba.
 # measured gain of fastmath on this kind of kernel is small (pow/exp/log dominate).
 FASTMATH = False
 
+# --- Reference counting: every kernel except the driver ``run_engine`` (which
+# allocates its work arrays) is compiled with ``_nrt=False``.  Numba otherwise
+# increments and decrements (atomically) the reference count of every array
+# argument on entry to and exit from each call; the kernels call their small
+# helpers (property evaluation, flow elements, transfers) tens of times per
+# step, and those atomic operations cost ~10-40 % of a cycle.  A kernel compiled
+# this way cannot allocate arrays (numba then refuses to compile it).
+
 # ------------------------------------------------------------------ species
 SP_A = 0   # air
 SP_M = 1   # fresh mixture (air + fuel vapour at the point's lambda)

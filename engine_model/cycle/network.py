@@ -9,7 +9,7 @@ from .volumes import PR_G, PR_P, PR_R, PR_S, PR_T
 STIFF_FRACTION = 2.0  # single-element flows: solved implicitly when the explicit flow would move > 2x the equalising mass per step
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _implicit_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn, s_up, s_dn, dt, m0):
     """Orifice flow evaluated with end-of-step pressures (backward Euler), solved for mdot.
 
@@ -50,7 +50,7 @@ def _implicit_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn, s_up, s_dn, dt, m0):
     return m
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _flow_between(i, j, cda, rec_fwd, props, dt):
     """Signed flow i -> j [kg/s] through an orifice, or a venturi (recovery ``rec_fwd`` for i -> j only).
 
@@ -72,19 +72,19 @@ def _flow_between(i, j, cda, rec_fwd, props, dt):
     return sgn * m0
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _orifice_between(i, j, cda, props, dt):
     """Signed orifice flow i -> j [kg/s]."""
     return _flow_between(i, j, cda, 0.0, props, dt)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _coef(n, u, props, vcur):
     """Pressure change of volume n per kg of gas from volume u entering it [Pa/kg] (gamma_n R_u T_u / V_n)."""
     return props[n, PR_G] * props[u, PR_R] * props[u, PR_T] / vcur[n]
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _add_rate(i, j, m, nvol, props, vcur, rate):
     """Pressure rates [Pa/s] of i and j caused by a flow m [kg/s] from i to j."""
     u = i if m >= 0.0 else j
@@ -94,7 +94,7 @@ def _add_rate(i, j, m, nvol, props, vcur, rate):
         rate[j] += _coef(j, u, props, vcur) * m
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _lin_between(i, j, cda, rec_fwd, props, eps, E, e):
     """Signed flow i -> j and its linearisation, stored in row e of E (i, j, m0, dm/dp_i, -dm/dp_j, upstream)."""
     pi = props[i, PR_P]
@@ -125,7 +125,7 @@ def _lin_between(i, j, cda, rec_fwd, props, eps, E, e):
     E[e, 6] = m
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _solve_chain(nodes, nn, elist, nel, E, props, vcur, rate, dt, M, rhs):
     """Linearly implicit flows of the elements ``elist`` joining the volumes ``nodes`` (n <= 3).
 

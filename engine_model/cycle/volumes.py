@@ -2,7 +2,7 @@
 
 from numba import njit
 
-from ..thermo import cp_mass, h_mass, mixture_state
+from ..thermo import cp_mass, h_mass, mixture_tcphr
 from .layout import *  # noqa: F401,F403  (index constants)
 
 # property columns of the scratch array ``props``
@@ -17,7 +17,7 @@ AC_N = 6
 
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
     """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
     for k in range(nvol):
@@ -32,10 +32,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         ya = ma / m
         ym = mm / m
         yp = mp / m
-        mixture_state(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T], cbuf)
-        t = cbuf[0]
-        cp = cbuf[1]
-        r = cbuf[3]
+        t, cp, h, r = mixture_tcphr(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T])
         if not (t > 150.0 and t < 4400.0):
             return 100 + k
         vol[k, V_T] = t
@@ -46,7 +43,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         props[k, PR_T] = t
         props[k, PR_R] = r
         props[k, PR_G] = g
-        props[k, PR_H] = cbuf[2]
+        props[k, PR_H] = h
         props[k, PR_YA] = ya
         props[k, PR_YM] = ym
         props[k, PR_YP] = yp
@@ -55,7 +52,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
     return 0
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _transfer(i, j, mdot, nvol, props, dvol):
     """Move ``mdot`` [kg/s] from i to j (negative: j to i) with the upstream composition and enthalpy."""
     u = i if mdot >= 0.0 else j
@@ -75,7 +72,7 @@ def _transfer(i, j, mdot, nvol, props, dvol):
         dvol[j, V_U] += fh
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
     """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
     if m >= 0.0:
@@ -95,7 +92,7 @@ def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
         _transfer(ip, k, m, nvol, props, dvol)
 
 
-@njit(cache=True, fastmath=FASTMATH)
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _set_ambient(props, amb, par, coeffs, rsp):
     t = par[P_TAMB]
     c = coeffs[SP_A]
