@@ -124,3 +124,49 @@ def plot_operating_map(res: pd.DataFrame, path: Path, title: str = "") -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
+
+
+def write_report(folder, name: str, title: str, sections: list) -> tuple[Path, Path]:
+    """Write ``<folder>/<name>.md`` and ``<name>.html`` from a list of sections (atomically).
+
+    Each section is ``(heading, items)``; an item is a str (a paragraph;
+    Markdown-safe text), a DataFrame (a table), or a ``Path`` to a PNG in
+    ``folder`` (an image, linked relatively).  Returns the two paths.
+    """
+    import html
+
+    from .io import write_text
+
+    folder = Path(folder)
+    md = [f"# {title}", ""]
+    ht = ["<!doctype html><html><head><meta charset='utf-8'>", f"<title>{html.escape(title)}</title>",
+          "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
+          "table{border-collapse:collapse;font-size:90%}td,th{border:1px solid #ccc;padding:2px 6px;"
+          "text-align:right}img{max-width:100%}</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
+    for heading, items in sections:
+        md += [f"## {heading}", ""]
+        ht.append(f"<h2>{html.escape(heading)}</h2>")
+        for it in items:
+            if isinstance(it, pd.DataFrame):
+                md += [it.to_markdown(index=False, floatfmt=".4g") if _has_tabulate() else
+                       "```\n" + it.to_string(index=False) + "\n```", ""]
+                ht.append(it.to_html(index=False, float_format=lambda v: f"{v:.4g}", border=0))
+            elif isinstance(it, Path):
+                rel = it.relative_to(folder) if it.is_absolute() and folder in it.parents else it
+                md += [f"![{rel.stem}]({rel.as_posix()})", ""]
+                ht.append(f"<p><img src='{html.escape(rel.as_posix())}' alt='{html.escape(rel.stem)}'></p>")
+            else:
+                md += [str(it), ""]
+                ht.append(f"<p>{html.escape(str(it))}</p>")
+    ht.append("</body></html>")
+    p_md = write_text("\n".join(md) + "\n", folder / f"{name}.md")
+    p_ht = write_text("\n".join(ht) + "\n", folder / f"{name}.html")
+    return p_md, p_ht
+
+
+def _has_tabulate() -> bool:
+    try:
+        import tabulate  # noqa: F401
+    except ImportError:
+        return False
+    return True
