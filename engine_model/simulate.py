@@ -58,6 +58,17 @@ def _row_label(points: pd.DataFrame, i: int) -> str:
     return f"row {i}{pid}"
 
 
+def _finite_column(pts: pd.DataFrame, raw: pd.DataFrame, col: str, source: str) -> np.ndarray:
+    """Column ``col`` as float64; ValueError naming the first row that is not a finite number."""
+    vals = pd.to_numeric(pts[col], errors="coerce").to_numpy(dtype=float)
+    bad = np.flatnonzero(~np.isfinite(vals))
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"{source}: {_row_label(pts, i)}, column '{col}': value {raw[col].iloc[i]!r} "
+                         "is not a finite number")
+    return vals
+
+
 def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "points") -> pd.DataFrame:
     """Check an operating-point table against the contract; return it with optional columns filled.
 
@@ -78,12 +89,7 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
         if col not in pts.columns:
             pts[col] = val
     for col in list(REQUIRED_COLUMNS) + list(defaults):
-        vals = pd.to_numeric(pts[col], errors="coerce").to_numpy(dtype=float)
-        bad = np.flatnonzero(~np.isfinite(vals))
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(f"{source}: {_row_label(pts, i)}, column '{col}': value {points[col].iloc[i]!r} "
-                             "is not a finite number")
+        vals = _finite_column(pts, points, col, source)
         if col == "speed_rpm":
             lo, hi, open_lo = 0.0, spec.geometry.max_speed_rpm, True
         else:
@@ -97,13 +103,7 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
         pts[col] = vals
     ov_cols = spec_columns(pts)
     for col in ov_cols:
-        vals = pd.to_numeric(pts[col], errors="coerce").to_numpy(dtype=float)
-        bad = np.flatnonzero(~np.isfinite(vals))
-        if bad.size:
-            i = int(bad[0])
-            raise ValueError(f"{source}: {_row_label(pts, i)}, column '{col}': value {points[col].iloc[i]!r} "
-                             "is not a finite number")
-        pts[col] = vals
+        pts[col] = _finite_column(pts, points, col, source)
     if ov_cols:
         seen = set()
         for i, vals in enumerate(pts[ov_cols].itertuples(index=False, name=None)):
