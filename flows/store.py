@@ -54,11 +54,45 @@ def solver_hash(solver) -> str:
     return sha256_text(json.dumps(asdict(solver), sort_keys=True))
 
 
-def chunk_bounds(n_points: int, chunk_size: int) -> list[tuple[int, int]]:
-    """[start, stop) row ranges of consecutive chunks covering ``n_points`` rows."""
+def chunk_bounds(n_points: int, chunk_size: int, groups=None) -> list[tuple[int, int]]:
+    """[start, stop) row ranges of consecutive chunks covering ``n_points`` rows.
+
+    With ``groups`` (one hashable key per row), chunks end at a change of key
+    where possible: the simulator reuses the converged state between
+    consecutive rows of one operating condition, and a chunk boundary inside
+    such a run costs a cold start.  A chunk then holds whole runs of rows up to
+    ``chunk_size`` (a run longer than that is split into ``chunk_size`` pieces).
+    Deterministic in the plan and ``chunk_size``, which resuming relies on.
+    """
     if chunk_size < 1:
         raise ValueError(f"chunk_size = {chunk_size} must be >= 1")
-    return [(s, min(s + chunk_size, n_points)) for s in range(0, n_points, chunk_size)]
+    if groups is None:
+        return [(s, min(s + chunk_size, n_points)) for s in range(0, n_points, chunk_size)]
+    keys = list(groups)
+    if len(keys) != n_points:
+        raise ValueError(f"groups has {len(keys)} keys for {n_points} rows")
+    runs, start = [], 0
+    for i in range(1, n_points + 1):
+        if i == n_points or keys[i] != keys[i - 1]:
+            runs.append((start, i))
+            start = i
+    bounds, cur = [], None
+    for a, b in runs:
+        while b - a > chunk_size:                     # a long run: whole pieces of chunk_size
+            if cur is not None:
+                bounds.append(cur)
+                cur = None
+            bounds.append((a, a + chunk_size))
+            a += chunk_size
+        if cur is not None and (b - cur[0]) <= chunk_size:
+            cur = (cur[0], b)                        # the run fits into the open chunk
+        else:
+            if cur is not None:
+                bounds.append(cur)
+            cur = (a, b)
+    if cur is not None:
+        bounds.append(cur)
+    return bounds
 
 
 def chunk_key(points: pd.DataFrame, spec_hash: str, solver_h: str) -> str:

@@ -43,13 +43,13 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from distributed import as_completed as dask_as_completed  # noqa: E402
 
 from engine_model import SolverSettings, __version__, load_spec  # noqa: E402
-from engine_model.simulate import simulate, validate_points  # noqa: E402  (installed module: pickled by reference)
+from engine_model.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
 from engine_model.doe import validate_plan  # noqa: E402
 from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 
 DEFAULT_WORKERS = 2
 TARGET_CHUNK_S = 3.0   # wall time aimed at per Dask task [s] (1-5 s: overhead small, progress fine)
-EST_POINT_S = 0.15     # median cost of one point at 0.5 deg (benchmarks/bench_cycle.py) [s]
+EST_POINT_S = 0.09     # median cost of one point at 0.5 deg (benchmarks/bench_cycle.py) [s]
 IN_FLIGHT_PER_THREAD = 3  # chunks submitted ahead per worker thread
 
 
@@ -74,6 +74,12 @@ def prepare_plan(plan: pd.DataFrame, spec, source: str = "plan") -> pd.DataFrame
     pts["point_id"] = ids.to_numpy(dtype=object)
     pts["plan_row"] = range(len(pts))
     return pts
+
+
+def state_groups(pts: pd.DataFrame) -> list[tuple]:
+    """Per row, the key under which consecutive rows share a converged state in ``simulate``."""
+    cols = ["speed_rpm", "throttle_pct", "lambda", "p_amb_pa", "t_amb_k"] + spec_columns(pts)
+    return list(pts[cols].itertuples(index=False, name=None))
 
 
 def auto_chunk_size(n_points: int, workers: int, step_deg: float = 0.5) -> int:
@@ -225,7 +231,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
             chunk_size = None
     if chunk_size is None:
         chunk_size = auto_chunk_size(len(pts), _worker_count(), step_deg)
-    bounds = store.chunk_bounds(len(pts), chunk_size)
+    bounds = store.chunk_bounds(len(pts), chunk_size, groups=state_groups(pts))
     base = _manifest_base(eng, spec, plan_h, solver, chunk_size, len(pts), len(bounds))
     _check_compatible(man_path, base)
     sweep_dir.mkdir(parents=True, exist_ok=True)
