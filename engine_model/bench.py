@@ -49,3 +49,7 @@ def load_bench(path=None) -> pd.DataFrame:
                              f"value {df[col].iloc[i]!r} is not a finite number")
         df[col] = vals
     return df
+
+
+# The virtual bench (truth engine + measurement chain) lives in its own module; re-exported here.
+from .virtual_bench import NoiseModel, VirtualBench, run_virtual_bench  # noqa: E402,F401
