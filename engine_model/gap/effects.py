@@ -421,25 +421,31 @@ def _scale_torque(df: pd.DataFrame, factor: np.ndarray) -> None:
         df["bsfc_g_kwh"] = pd.to_numeric(df["bsfc_g_kwh"], errors="coerce").to_numpy(float) / factor
 
 
-def _post_transmission_efficiency(df, v, eta_base):
+def _post_transmission_efficiency(df, v, eta_base, spec):
     _scale_torque(df, np.full(len(df), v["eta"] / eta_base))
 
 
-def _post_transmission_speed_loss(df, v, eta_base):
+def _post_transmission_speed_loss(df, v, eta_base, spec):
     n = pd.to_numeric(df["speed_rpm"], errors="coerce").to_numpy(float)
     _scale_torque(df, 1.0 - v["k_per_krpm"] * n / 1000.0)
 
 
-def _post_humidity(df, v, eta_base):
+def _post_humidity(df, v, eta_base, spec):
     # the meter reads the moist mass: dry flow x (1 + humidity ratio), humidity
-    # ratio = (M_w / M_a) p_v / p_dry = 0.622 p_v / p_dry
-    if "gap_vapour_pressure_pa" not in df.columns or "p_amb_pa" not in df.columns:
-        raise ValueError("post_effects: effect 'humidity' needs the results of simulate() on the table "
-                         "apply_effects() returned (columns 'gap_vapour_pressure_pa', 'p_amb_pa')")
-    pv = pd.to_numeric(df["gap_vapour_pressure_pa"], errors="coerce").to_numpy(float)
-    pdry = pd.to_numeric(df["p_amb_pa"], errors="coerce").to_numpy(float)
+    # ratio = (M_w / M_a) p_v / p_dry = 0.622 p_v / p_dry.  Works on simulate's
+    # output of the apply_effects table (vapour pressure column present) and on
+    # a bench table built from the original plan (cell state from its columns
+    # or the spec); the two differ only in second-order terms.
+    if "gap_vapour_pressure_pa" in df.columns and "p_amb_pa" in df.columns:
+        pv = pd.to_numeric(df["gap_vapour_pressure_pa"], errors="coerce").to_numpy(float)
+        pdry = pd.to_numeric(df["p_amb_pa"], errors="coerce").to_numpy(float)
+    else:
+        t = _col(df, "t_amb_k", spec.ambient.temperature_k)
+        pv = v["relative_humidity"] * saturation_pressure_pa(t)
+        pdry = _col(df, "p_amb_pa", spec.ambient.pressure_pa) - pv
     if "air_mass_flow_kg_h" in df.columns:
-        df["air_mass_flow_kg_h"] = df["air_mass_flow_kg_h"].to_numpy(float) * (1.0 + 0.622 * pv / pdry)
+        df["air_mass_flow_kg_h"] = pd.to_numeric(df["air_mass_flow_kg_h"], errors="coerce").to_numpy(float) \
+            * (1.0 + 0.622 * pv / pdry)
 
 
 _POST: dict[str, Callable] = {
@@ -485,14 +491,15 @@ def apply_effects(points: pd.DataFrame, effects: Mapping[str, Mapping[str, float
     vals = check_effects(effects)
     spec = default_spec() if spec is None else spec
     df = points.copy()
-    for name, v in vals.items():
-        if name in _APPLY and not _is_neutral(name, v):
-            _APPLY[name](df, spec, v)
+    # humidity first: its vapour pressure belongs to the cell temperature, before any intake heating
+    for name in sorted(vals, key=lambda n: n != "humidity"):
+        if name in _APPLY and not _is_neutral(name, vals[name]):
+            _APPLY[name](df, spec, vals[name])
     return df
 
 
 def post_effects(results: pd.DataFrame, effects: Mapping[str, Mapping[str, float]] | None,
-                 eta_base: float = ETA_TRANS_BASE) -> pd.DataFrame:
+                 eta_base: float = ETA_TRANS_BASE, spec: EngineSpec | None = None) -> pd.DataFrame:
     """Put the measurement-chain effects into simulated results.
 
     Parameters
@@ -504,6 +511,8 @@ def post_effects(results: pd.DataFrame, effects: Mapping[str, Mapping[str, float
         ``{effect_name: {param: value}}``, the same dict given to apply_effects.
     eta_base : float
         Transmission efficiency already applied to the torque [-].
+    spec : EngineSpec, optional
+        For the cell state when the table has no ambient columns (default R6).
 
     Returns
     -------
@@ -512,8 +521,10 @@ def post_effects(results: pd.DataFrame, effects: Mapping[str, Mapping[str, float
         (humidity) as measured.
     """
     vals = check_effects(effects)
+    if any(name in _POST and not _is_neutral(name, v) for name, v in vals.items()):
+        spec = default_spec() if spec is None else spec
     df = results.copy()
     for name, v in vals.items():
         if name in _POST and not _is_neutral(name, v):
-            _POST[name](df, v, eta_base)
+            _POST[name](df, v, eta_base, spec)
     return df
