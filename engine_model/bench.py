@@ -212,3 +212,7 @@ def load_bench(path=None) -> pd.DataFrame:
     else:
         df, src = read_table(path), str(path)
     return validate_bench(df, src)
+
+
+# The virtual bench (truth engine + measurement chain) lives in its own module; re-exported here.
+from .virtual_bench import NoiseModel, VirtualBench, run_virtual_bench  # noqa: E402,F401
