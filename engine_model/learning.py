@@ -317,6 +317,7 @@ def plot_learning_curve(curve: pd.DataFrame, path, target: dict[str, float] | No
                         title: str = "Map accuracy vs bench points") -> "Path":
     """PNG: held-out RMSE of BDUR10-90 and m vs plan size, one line per design (mean, min-max band)."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -336,6 +337,8 @@ def plot_learning_curve(curve: pd.DataFrame, path, target: dict[str, float] | No
         ax.set_xlabel("bench points in the plan")
         ax.set_ylabel(labels[o])
         ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
         ax.grid(True, which="both", alpha=0.3)
     axes[0].legend()
     fig.suptitle(title)
