@@ -1,0 +1,946 @@
+"""ECU look-up tables from the cycle model and a combustion model: spark advance and injection time.
+
+    ECU grid (throttle % x rpm) + target-lambda table
+      -> per cell: spark search on the cycle model, Wiebe parameters predicted per candidate spark
+         (coarse sweep around the model's CA50 = 9 deg ATDC spark, then parabolic refinement of brake
+          torque; knock border refined log-linearly), one batched ``evaluate`` call per search stage
+      -> MBT, limited by knock (knock_index < 1 - knock_margin) and a safety retard
+      -> infeasible zones of the paper's Figure 1 flagged (``doe.feasibility``)
+      -> smoothing with bounded second differences (only as much as needed; shifts reported)
+      -> verification run of the final table (knock re-checked, trapped air) -> injection time
+      -> the deliberately retarded starting map for the first bench session
+
+A *combustion model* is any object with ``predict(points) -> DataFrame``
+returning ``bdur_10_90_deg, wiebe_m`` for rows with ``throttle_pct,
+speed_rpm, spark_deg_btdc, lambda``; a fitted model also has ``spec_hash``
+and ``check_spec(spec)``.  :class:`PriorModel` wraps the DOE prior
+:func:`engine_model.doe.combustion_estimate` (useful before any bench data).
+
+Export (long-form Parquet, wide CSV, heatmaps) is in :mod:`engine_model.maps_io`.
+
+References
+----------
+.. [P] Mrda et al., MVM2012-024: retarded initial spark map (10-15 deg), MBT or
+   knock as the end of a spark sweep, Figure 1 (zones), Figures 3-4 (tables).
+.. [H] J.B. Heywood, Internal Combustion Engine Fundamentals, 1988, sec.
+   9.3 / 9.6 (MBT, knock-limited spark advance).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from . import doe, thermo, wiebe
+from .spec import EngineSpec
+
+__all__ = [
+    "EcuGrid", "LambdaTable", "MapSettings", "MapResult", "PriorModel", "build_maps", "injection_time_ms",
+    "load_model", "parse_breakpoints", "smooth_table", "second_differences",
+]
+
+#: Default ECU throttle breakpoints [%]: dense at small openings where load changes fastest.
+DEFAULT_THROTTLE_PCT = (0.0, 5.0, 10.0, 15.0, 20.0, 30.0, 40.0, 50.0, 60.0, 80.0, 100.0)
+#: Default ECU speed breakpoints [rpm]: 1000-13000 in 1000 rpm steps (R6 rev range).
+DEFAULT_SPEED_RPM = tuple(float(n) for n in range(1000, 13001, 1000))
+
+
+# --------------------------------------------------------------------------- grid
+
+def parse_breakpoints(text: str, name: str) -> tuple[float, ...]:
+    """Breakpoints from text: ``'0,5,10,20'`` or a range ``'1000:13000:1000'`` (start:stop:step, stop included).
+
+    Raises ValueError naming ``name`` and the offending text.
+    """
+    text = str(text).strip()
+    try:
+        if ":" in text:
+            parts = [float(p) for p in text.split(":")]
+            if len(parts) != 3 or not parts[2] > 0:
+                raise ValueError
+            start, stop, step = parts
+            n = int(math.floor((stop - start) / step + 1e-9)) + 1
+            if n < 1 or n > 1000:
+                raise ValueError
+            return tuple(float(start + k * step) for k in range(n))
+        return tuple(float(p) for p in text.split(",") if p.strip() != "")
+    except ValueError:
+        raise ValueError(f"{name} breakpoints {text!r}: expected comma-separated numbers '0,5,10' or "
+                         "a range 'start:stop:step' with step > 0") from None
+
+
+def _check_axis(name: str, values, lo: float, hi: float, unit: str) -> tuple[float, ...]:
+    try:
+        arr = np.asarray([float(v) for v in values], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"EcuGrid.{name}: {values!r} must be a sequence of numbers [{unit}]") from None
+    if arr.size < 2:
+        raise ValueError(f"EcuGrid.{name}: needs at least 2 breakpoints, got {arr.size}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise ValueError(f"EcuGrid.{name}: breakpoint {bad[0]} = {arr[bad[0]]} is not a finite number")
+    d = np.diff(arr)
+    if np.any(d == 0):
+        k = int(np.flatnonzero(d == 0)[0])
+        raise ValueError(f"EcuGrid.{name}: duplicate breakpoint {arr[k]:g} {unit} at positions {k} and {k + 1}")
+    if np.any(d < 0):
+        k = int(np.flatnonzero(d < 0)[0])
+        raise ValueError(f"EcuGrid.{name}: breakpoints must be sorted ascending; {arr[k]:g} {unit} "
+                         f"(position {k}) is followed by {arr[k + 1]:g} {unit}")
+    if arr[0] < lo or arr[-1] > hi:
+        raise ValueError(f"EcuGrid.{name}: breakpoints {arr[0]:g}..{arr[-1]:g} {unit} leave the allowed "
+                         f"range [{lo:g}, {hi:g}] {unit}")
+    return tuple(arr.tolist())
+
+
+@dataclass(frozen=True)
+class EcuGrid:
+    """Breakpoints of the ECU tables: rows throttle [%] (0-100), columns speed [rpm] (> 0).
+
+    Both strictly ascending, at least 2 each; unsorted or duplicate
+    breakpoints raise a ValueError naming the axis, the positions and values.
+    """
+
+    throttle_pct: tuple[float, ...] = DEFAULT_THROTTLE_PCT
+    speed_rpm: tuple[float, ...] = DEFAULT_SPEED_RPM
+
+    def __post_init__(self):
+        object.__setattr__(self, "throttle_pct", _check_axis("throttle_pct", self.throttle_pct, 0.0, 100.0, "%"))
+        object.__setattr__(self, "speed_rpm", _check_axis("speed_rpm", self.speed_rpm, 1e-9, 1e6, "rpm"))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(number of throttle rows, number of speed columns)."""
+        return len(self.throttle_pct), len(self.speed_rpm)
+
+    def cells(self) -> pd.DataFrame:
+        """One row per cell, row-major (throttle outer): ``cell, i, j, throttle_pct, speed_rpm``."""
+        nt, ns = self.shape
+        i, j = np.divmod(np.arange(nt * ns), ns)
+        return pd.DataFrame({"cell": np.arange(nt * ns), "i": i, "j": j,
+                             "throttle_pct": np.asarray(self.throttle_pct)[i],
+                             "speed_rpm": np.asarray(self.speed_rpm)[j]})
+
+    def check_spec(self, spec: EngineSpec) -> None:
+        """ValueError if a speed breakpoint exceeds the engine's maximum speed."""
+        if self.speed_rpm[-1] > spec.geometry.max_speed_rpm:
+            raise ValueError(f"EcuGrid.speed_rpm: breakpoint {self.speed_rpm[-1]:g} rpm exceeds the engine's "
+                             f"max_speed_rpm {spec.geometry.max_speed_rpm:g}")
+
+
+# --------------------------------------------------------------------------- target lambda
+
+LAMBDA_RANGE = (0.6, 1.6)   # plausible SI targets [-]: richer than 0.6 misfires, leaner than 1.6 will not burn
+
+
+@dataclass(frozen=True)
+class LambdaTable:
+    """Target excess-air ratio [-] on its own breakpoints; rows throttle [%], columns speed [rpm].
+
+    ``values[i][j]`` belongs to ``throttle_pct[i]``, ``speed_rpm[j]``.  Holes
+    (NaN), non-numbers and values outside :data:`LAMBDA_RANGE` raise a
+    ValueError naming the row (throttle) and column (rpm).
+    """
+
+    throttle_pct: tuple[float, ...]
+    speed_rpm: tuple[float, ...]
+    values: tuple[tuple[float, ...], ...]
+    source: str = field(default="<table>", compare=False)
+
+    def __post_init__(self):
+        grid = EcuGrid(self.throttle_pct, self.speed_rpm)  # same breakpoint rules
+        object.__setattr__(self, "throttle_pct", grid.throttle_pct)
+        object.__setattr__(self, "speed_rpm", grid.speed_rpm)
+        rows = [tuple(r) for r in self.values]
+        if len(rows) != len(grid.throttle_pct):
+            raise ValueError(f"{self.source}: {len(rows)} rows of lambda values for {len(grid.throttle_pct)} "
+                             "throttle breakpoints")
+        clean = []
+        for i, row in enumerate(rows):
+            if len(row) != len(grid.speed_rpm):
+                raise ValueError(f"{self.source}: row {i} (throttle {grid.throttle_pct[i]:g} %) has {len(row)} "
+                                 f"values for {len(grid.speed_rpm)} speed columns")
+            out = []
+            for j, v in enumerate(row):
+                where = f"{self.source}: row {i} (throttle {grid.throttle_pct[i]:g} %), column {j} " \
+                        f"({grid.speed_rpm[j]:g} rpm)"
+                try:
+                    x = float(v)
+                except (TypeError, ValueError):
+                    raise ValueError(f"{where}: value {v!r} is not a number") from None
+                if not math.isfinite(x):
+                    raise ValueError(f"{where}: hole (value {v!r}); every cell needs a target lambda")
+                if not LAMBDA_RANGE[0] <= x <= LAMBDA_RANGE[1]:
+                    raise ValueError(f"{where}: lambda {x:g} is outside [{LAMBDA_RANGE[0]:g}, {LAMBDA_RANGE[1]:g}]")
+                out.append(x)
+            clean.append(tuple(out))
+        object.__setattr__(self, "values", tuple(clean))
+
+    @classmethod
+    def default(cls, grid: EcuGrid) -> "LambdaTable":
+        """0.9 at WOT, 1.0 at part load: :func:`engine_model.doe.lambda_target` per throttle row.
+
+        The same rule the DOE plans use (1.0 up to 60 %, linear to 0.9 at 90 %
+        and above; 0.9 is the paper's WOT setting, Table 2), so bench points
+        and tables share the mixture.
+        """
+        lam = np.atleast_1d(doe.lambda_target(np.asarray(grid.throttle_pct)))
+        return cls(grid.throttle_pct, grid.speed_rpm, tuple((float(v),) * len(grid.speed_rpm) for v in lam),
+                   source="default lambda table")
+
+    @classmethod
+    def from_frame(cls, wide: pd.DataFrame, source: str = "<frame>") -> "LambdaTable":
+        """From a wide table: first column throttle [%], the other column names speeds [rpm]."""
+        if wide.shape[1] < 3 or wide.shape[0] < 2:
+            raise ValueError(f"{source}: expected a wide table with a throttle column and >= 2 speed columns, "
+                             f">= 2 rows; got {wide.shape[0]} rows x {wide.shape[1]} columns")
+        speeds = []
+        for c in wide.columns[1:]:
+            try:
+                speeds.append(float(str(c).strip().removesuffix("rpm").strip()))
+            except ValueError:
+                raise ValueError(f"{source}: column header {c!r} is not a speed [rpm]") from None
+        thr = []
+        for i, v in enumerate(wide.iloc[:, 0]):
+            try:
+                thr.append(float(v))
+            except (TypeError, ValueError):
+                raise ValueError(f"{source}: row {i}, throttle value {v!r} is not a number") from None
+        vals = wide.iloc[:, 1:].to_numpy(dtype=object)
+        try:
+            return cls(tuple(thr), tuple(speeds), tuple(tuple(r) for r in vals), source=source)
+        except ValueError as exc:
+            msg = str(exc)
+            raise ValueError(msg if msg.startswith(source) else f"{source}: {msg}") from None
+
+    @classmethod
+    def from_csv(cls, path) -> "LambdaTable":
+        """From a wide CSV as written by :func:`engine_model.maps_io.write_maps` (``lambda_target.csv``)."""
+        p = Path(path)
+        if not p.is_file():
+            raise ValueError(f"{p}: file not found")
+        try:
+            wide = pd.read_csv(p, dtype=str, keep_default_na=False)
+        except Exception as exc:  # noqa: BLE001 - any parser failure is reported with the file name
+            raise ValueError(f"{p}: could not be read as CSV: {exc}") from None
+        wide = wide.replace({"": np.nan})
+        return cls.from_frame(wide, source=str(p))
+
+    def on_grid(self, grid: EcuGrid) -> np.ndarray:
+        """Values on ``grid`` [-], shape (n_throttle, n_speed): bilinear; the grid must lie inside the table."""
+        t, n = np.asarray(self.throttle_pct), np.asarray(self.speed_rpm)
+        gt, gn = np.asarray(grid.throttle_pct), np.asarray(grid.speed_rpm)
+        if gt[0] < t[0] or gt[-1] > t[-1] or gn[0] < n[0] or gn[-1] > n[-1]:
+            raise ValueError(f"{self.source}: lambda table covers throttle {t[0]:g}-{t[-1]:g} %, speed "
+                             f"{n[0]:g}-{n[-1]:g} rpm; the ECU grid needs {gt[0]:g}-{gt[-1]:g} %, "
+                             f"{gn[0]:g}-{gn[-1]:g} rpm")
+        v = np.asarray(self.values, dtype=float)
+        along_n = np.array([np.interp(gn, n, row) for row in v])            # (len t, len gn)
+        return np.array([np.interp(gt, t, col) for col in along_n.T]).T     # (len gt, len gn)
+
+
+# --------------------------------------------------------------------------- settings and models
+
+@dataclass(frozen=True)
+class MapSettings:
+    """How the tables are built (angles in deg crank angle, spark in deg BTDC).
+
+    Attributes
+    ----------
+    knock_margin : float
+        Table cells must satisfy ``knock_index < 1 - knock_margin`` [-]
+        (default 0.15: limit 0.85; the knock model is a Livengood-Wu integral
+        with uncertain constants, so the border is kept away from 1).
+    safety_retard_deg : float
+        Retard from MBT applied where MBT (not knock) sets the spark [deg]
+        (default 0: the torque plateau near MBT is flat, 2 deg cost < 0.5 %).
+    spark_min_deg_btdc, spark_max_deg_btdc : float
+        Search range [deg BTDC]; a cell that knocks at ``spark_min`` is the
+        knock-limited infeasible zone 1.
+    coarse_offsets_deg : tuple of float
+        First-stage candidates relative to the model's CA50 = 9 deg ATDC spark.
+    refine_step_deg : float
+        Spacing of the parabolic refinement around the torque peak [deg].
+    knock_tol_deg : float
+        Knock border resolved when the highest knock-safe evaluated spark is
+        within this of the interpolated border [deg].
+    max_stages : int
+        Search stages (batched evaluate calls) at most, verification excluded.
+    max_fix_rounds : int
+        Verification rounds that retard cells found knocking.
+    max_second_diff_deg : float
+        Bound on |second difference| of the spark table along either axis
+        (per breakpoint, feasible cells) [deg].
+    start_retard_deg : float
+        Retard of the starting map from the built map [deg]; the paper
+        recommends 10-15 deg [P].
+    battery_v : float
+        Battery voltage for the injector dead time [V].
+    min_bmep_bar : float
+        Near-zero-BMEP (zone 2) limit [bar], default :data:`engine_model.doe.MIN_BMEP_BAR`.
+    ca50_target_deg_atdc : float
+        Centre of the first-stage sweep: the spark at which the model puts
+        CA50 here [deg ATDC] (paper: MBT at CA50 8-10 deg ATDC).
+    """
+
+    knock_margin: float = 0.15
+    safety_retard_deg: float = 0.0
+    spark_min_deg_btdc: float = 0.0
+    spark_max_deg_btdc: float = 70.0
+    coarse_offsets_deg: tuple[float, ...] = (-12.0, -8.0, -4.0, 0.0, 4.0, 8.0)
+    refine_step_deg: float = 1.0
+    knock_tol_deg: float = 0.5
+    max_stages: int = 5
+    max_fix_rounds: int = 3
+    max_second_diff_deg: float = 6.0
+    start_retard_deg: float = 12.0
+    battery_v: float = 14.0
+    min_bmep_bar: float = doe.MIN_BMEP_BAR
+    ca50_target_deg_atdc: float = doe.CA50_TARGET_DEG_ATDC
+
+    def __post_init__(self):
+        def need(ok, name, rule):
+            if not ok:
+                raise ValueError(f"MapSettings.{name} = {getattr(self, name)!r}: {rule}")
+        need(0 <= self.knock_margin < 1, "knock_margin", "must lie in [0, 1)")
+        need(0 <= self.safety_retard_deg <= 20, "safety_retard_deg", "must lie in [0, 20] deg")
+        need(-30 <= self.spark_min_deg_btdc < self.spark_max_deg_btdc <= 90, "spark_min_deg_btdc",
+             "need -30 <= spark_min < spark_max <= 90 deg BTDC")
+        offs = tuple(float(o) for o in self.coarse_offsets_deg)
+        object.__setattr__(self, "coarse_offsets_deg", offs)
+        need(len(offs) >= 3 and len(set(offs)) == len(offs), "coarse_offsets_deg", "needs >= 3 distinct offsets")
+        need(0.1 <= self.refine_step_deg <= 5, "refine_step_deg", "must lie in [0.1, 5] deg")
+        need(0.05 <= self.knock_tol_deg <= 5, "knock_tol_deg", "must lie in [0.05, 5] deg")
+        need(isinstance(self.max_stages, int) and 1 <= self.max_stages <= 20, "max_stages", "integer 1-20")
+        need(isinstance(self.max_fix_rounds, int) and 0 <= self.max_fix_rounds <= 10, "max_fix_rounds",
+             "integer 0-10")
+        need(self.max_second_diff_deg > 0, "max_second_diff_deg", "must be > 0 deg")
+        need(0 <= self.start_retard_deg <= 40, "start_retard_deg", "must lie in [0, 40] deg")
+        need(6 <= self.battery_v <= 30, "battery_v", "must lie in [6, 30] V")
+        need(self.min_bmep_bar >= 0, "min_bmep_bar", "must be >= 0 bar")
+
+    @property
+    def knock_limit(self) -> float:
+        """Highest knock index a table cell may reach (exclusive) [-]."""
+        return 1.0 - self.knock_margin
+
+
+class PriorModel:
+    """The DOE prior as a combustion model: :func:`engine_model.doe.combustion_estimate` (spark-independent).
+
+    Parameters
+    ----------
+    spec_hash : str, optional
+        Engine spec the model is meant for (None: any spec).
+    """
+
+    kind = "combustion_prior"
+
+    def __init__(self, spec_hash: str | None = None):
+        self.spec_hash = spec_hash
+
+    def predict(self, points: pd.DataFrame) -> pd.DataFrame:
+        b, m = doe.combustion_estimate(points["speed_rpm"].to_numpy(float), points["throttle_pct"].to_numpy(float))
+        return pd.DataFrame({"bdur_10_90_deg": np.atleast_1d(b), "wiebe_m": np.atleast_1d(m)}, index=points.index)
+
+    def check_spec(self, spec: EngineSpec) -> None:
+        if self.spec_hash is not None and self.spec_hash != spec.spec_hash():
+            raise ValueError(f"combustion model was built for engine spec {self.spec_hash}, not "
+                             f"{spec.spec_hash()} ({spec.name}); refit it for this spec")
+
+    def save(self, path) -> Path:
+        from .io import write_json
+        return write_json({"model": self.kind, "spec_hash": self.spec_hash}, path)
+
+
+def load_model(path):
+    """Load a combustion model file: a :class:`PriorModel` JSON, else :func:`engine_model.mapmodel.load`."""
+    p = Path(path)
+    if not p.is_file():
+        raise ValueError(f"{p}: model file not found")
+    if p.suffix.lower() == ".json":
+        try:
+            doc = json.loads(p.read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{p}: not a readable JSON model file: {exc}") from None
+        if isinstance(doc, dict) and doc.get("model") == PriorModel.kind:
+            return PriorModel(doc.get("spec_hash"))
+    try:
+        from . import mapmodel
+    except ImportError:
+        raise ValueError(f"{p}: not a combustion-prior file, and engine_model.mapmodel is not available") from None
+    return mapmodel.load(p)
+
+
+def _check_model(model, spec: EngineSpec) -> None:
+    if not callable(getattr(model, "predict", None)):
+        raise ValueError(f"combustion model {type(model).__name__} has no predict(points) method")
+    if callable(getattr(model, "check_spec", None)):
+        model.check_spec(spec)
+    elif getattr(model, "spec_hash", None) not in (None, spec.spec_hash()):
+        raise ValueError(f"combustion model was fitted for engine spec {model.spec_hash}, not "
+                         f"{spec.spec_hash()} ({spec.name})")
+
+
+def _predict(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """(bdur_10_90, m) per row; NaN where the model's answer is missing or unphysical."""
+    pred = model.predict(pts[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]].reset_index(drop=True))
+    if len(pred) != len(pts) or not {"bdur_10_90_deg", "wiebe_m"} <= set(pred.columns):
+        raise ValueError(f"combustion model {type(model).__name__}.predict returned {len(pred)} rows / columns "
+                         f"{list(pred.columns)}; expected {len(pts)} rows with bdur_10_90_deg, wiebe_m")
+    b = pd.to_numeric(pred["bdur_10_90_deg"], errors="coerce").to_numpy(float).copy()
+    m = pd.to_numeric(pred["wiebe_m"], errors="coerce").to_numpy(float).copy()
+    bad = ~(np.isfinite(b) & np.isfinite(m) & (b > 0) & (b < 180) & (m > -1) & (m < 20))
+    b[bad], m[bad] = np.nan, np.nan
+    return b, m
+
+
+# --------------------------------------------------------------------------- small numerics
+
+def injection_time_ms(air_mass_flow_kg_h, speed_rpm, lam, spec: EngineSpec, battery_v: float = 14.0):
+    """Injector pulse width [ms] for one injection per cylinder per cycle (sequential injection).
+
+    Parameters
+    ----------
+    air_mass_flow_kg_h : array_like
+        Engine air mass flow [kg/h].
+    speed_rpm : array_like
+        Engine speed [rpm].
+    lam : array_like
+        Target excess-air ratio [-].
+    spec : EngineSpec
+        ``geometry.n_cylinders``, ``fuel`` (stoichiometric AFR), ``injector``.
+    battery_v : float
+        Battery voltage [V].
+
+    Returns
+    -------
+    dict of ndarray
+        ``air_mg`` (per cylinder per cycle), ``fuel_mg``, ``dead_time_ms``,
+        ``injection_time_ms``, ``duty_pct`` (of the 720 deg cycle).
+
+    Notes
+    -----
+    ``m_air = Ga / (N/120) / z``, ``m_fuel = m_air / (lambda AFR_st)``,
+    ``t = m_fuel / (k q_static) + t_dead(U)``, ``t_dead(U) = t_dead,ref +
+    s (U - U_ref)`` (clipped at 0), with ``k`` injectors per cylinder.
+    """
+    inj = spec.injector
+    ga = np.asarray(air_mass_flow_kg_h, float) / 3600.0
+    n = np.asarray(speed_rpm, float)
+    cycles_per_s = n / 120.0
+    air = ga / cycles_per_s / spec.geometry.n_cylinders
+    fuel = air / (np.asarray(lam, float) * thermo.stoich_afr(spec.fuel))
+    dead = max(0.0, inj.dead_time_s + inj.dead_time_slope_s_per_v * (battery_v - inj.dead_time_ref_v))
+    t = fuel / (inj.per_cylinder * inj.static_flow_kg_s) + dead
+    return {"air_mg": air * 1e6, "fuel_mg": fuel * 1e6, "dead_time_ms": np.full_like(t, dead * 1e3),
+            "injection_time_ms": t * 1e3, "duty_pct": t * cycles_per_s * 100.0}
+
+
+def second_differences(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Second differences per breakpoint along throttle (axis 0) and speed (axis 1)."""
+    t = np.asarray(table, float)
+    return t[2:, :] - 2 * t[1:-1, :] + t[:-2, :], t[:, 2:] - 2 * t[:, 1:-1] + t[:, :-2]
+
+
+def _d2_operator(shape, keep: np.ndarray) -> np.ndarray:
+    """Rows of the second-difference operator over stencils whose three cells are all ``keep``."""
+    nt, ns = shape
+    idx = np.arange(nt * ns).reshape(shape)
+    rows = []
+    for a, b, c in ((idx[:-2, :], idx[1:-1, :], idx[2:, :]), (idx[:, :-2], idx[:, 1:-1], idx[:, 2:])):
+        for p, q, r in zip(a.ravel(), b.ravel(), c.ravel()):
+            if keep[p] and keep[q] and keep[r]:
+                row = np.zeros(nt * ns)
+                row[p], row[q], row[r] = 1.0, -2.0, 1.0
+                rows.append(row)
+    return np.array(rows).reshape(-1, nt * ns)
+
+
+def smooth_table(raw: np.ndarray, weight: np.ndarray, lower: np.ndarray, upper: np.ndarray,
+                 max_second_diff: float | None, stencil: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+    """Least change that fills holes and bounds second differences, within per-cell bounds.
+
+    Minimises ``sum w (x - raw)^2 + lam * sum (D2 x)^2`` subject to
+    ``lower <= x <= upper`` (``scipy.optimize.lsq_linear``), with the smallest
+    ``lam`` (bisection in log10 over 1e-6..1e6) for which ``max |D2 x| <=
+    max_second_diff`` over stencils of weighted cells.  Cells with weight 0
+    (holes) take the minimum-curvature fill.
+
+    Parameters
+    ----------
+    raw, weight, lower, upper : ndarray, shape (n_throttle, n_speed)
+        Raw values (NaN allowed where weight is 0), weights (0 or 1), bounds.
+    max_second_diff : float or None
+        Bound [table unit]; None: fill only.
+    stencil : ndarray of bool, optional
+        Cells that take part in the smoothness penalty (default all).
+
+    Returns
+    -------
+    ndarray
+        Smoothed table.
+    dict
+        ``lam``, ``max_second_diff`` (achieved over weighted stencils),
+        ``bound_met``, ``max_shift``, ``rms_shift`` (over weighted cells).
+    """
+    from scipy.optimize import lsq_linear
+
+    shape = raw.shape
+    w = np.asarray(weight, float).ravel()
+    r = np.where(w > 0, np.asarray(raw, float).ravel(), 0.0)
+    lo, hi = np.asarray(lower, float).ravel(), np.asarray(upper, float).ravel()
+    r = np.where(w > 0, np.clip(r, lo, hi), r)
+    keep = np.ones(w.size, bool) if stencil is None else np.asarray(stencil, bool).ravel()
+    d2 = _d2_operator(shape, keep)
+    d2w = _d2_operator(shape, keep & (w > 0))
+    fixed = lo >= hi - 1e-12
+    hi_eff = np.where(fixed, lo + 1e-9, hi)
+
+    def solve(lam):
+        a = np.vstack([np.diag(np.sqrt(w)), math.sqrt(lam) * d2]) if d2.size else np.diag(np.sqrt(w))
+        b = np.concatenate([np.sqrt(w) * r, np.zeros(len(d2))])
+        sol = lsq_linear(a, b, bounds=(lo, hi_eff), method="bvls" if a.shape[1] <= 400 else "trf")
+        return np.clip(sol.x, lo, hi)
+
+    def worst(x):
+        return float(np.max(np.abs(d2w @ x))) if d2w.size else 0.0
+
+    lam_lo = 1e-6
+    x = solve(lam_lo)
+    lam = lam_lo
+    if max_second_diff is not None and worst(x) > max_second_diff:
+        x_hi = solve(1e6)
+        if worst(x_hi) > max_second_diff:
+            x, lam = x_hi, 1e6
+        else:
+            a, b = math.log10(lam_lo), 6.0
+            x = x_hi
+            for _ in range(24):
+                mid = 0.5 * (a + b)
+                xm = solve(10 ** mid)
+                if worst(xm) <= max_second_diff:
+                    b, x = mid, xm
+                else:
+                    a = mid
+            lam = 10 ** b
+    shift = (x - r)[w > 0]
+    info = {"lam": lam, "max_second_diff": worst(x),
+            "bound_met": max_second_diff is None or worst(x) <= max_second_diff + 1e-9,
+            "max_shift": float(np.max(np.abs(shift))) if shift.size else 0.0,
+            "rms_shift": float(np.sqrt(np.mean(shift ** 2))) if shift.size else 0.0}
+    return x.reshape(shape), info
+
+
+def _vertex(x, y) -> float:
+    """Abscissa of the parabola through three points; the middle point if not concave."""
+    (x0, x1, x2), (y0, y1, y2) = x, y
+    d = (x1 - x0) * (x1 - x2) * (x0 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / d
+    b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / d
+    if not a < 0:
+        return float(x1)
+    return float(min(max(-b / (2 * a), x0), x2))
+
+
+def _knock_cross(s1, k1, s2, k2, limit) -> float:
+    """Spark where the knock index reaches ``limit``, log-linear through two points (linear if not positive)."""
+    if k1 > 0 and k2 > 0 and k1 != k2:
+        return float(s1 + math.log(limit / k1) * (s2 - s1) / math.log(k2 / k1))
+    if k2 != k1:
+        return float(s1 + (limit - k1) * (s2 - s1) / (k2 - k1))
+    return float(s1)
+
+
+# --------------------------------------------------------------------------- the spark search
+
+_EVAL_KEEP = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
+              "fuel_mass_flow_kg_h", "exhaust_temp_k", "converged", "status")
+
+
+def _model_spark(model, cells: pd.DataFrame, st: MapSettings) -> np.ndarray:
+    """Per cell, the spark [deg BTDC] at which the model's (BDUR10-90, m) put CA50 at the target (1 deg grid)."""
+    sparks = np.arange(math.ceil(st.spark_min_deg_btdc), math.floor(st.spark_max_deg_btdc) + 1, 1.0)
+    rep = cells.loc[np.repeat(cells.index.to_numpy(), sparks.size)].reset_index(drop=True)
+    rep["spark_deg_btdc"] = np.tile(sparks, len(cells))
+    b, m = _predict(model, rep)
+    ok = np.isfinite(b)
+    ca50 = np.full(len(rep), np.nan)
+    ca50[ok] = wiebe.angle_at_fraction(0.5, rep["spark_deg_btdc"].to_numpy()[ok],
+                                       wiebe.bdur_10_90_to_bdur(b[ok], m[ok]), m[ok])
+    err = np.abs(ca50 - st.ca50_target_deg_atdc).reshape(len(cells), sparks.size)
+    err = np.where(np.isfinite(err), err, np.inf)
+    best = sparks[np.argmin(err, axis=1)]
+    # no usable prediction at all: fall back to the DOE prior's spark
+    none = ~np.isfinite(err).any(axis=1)
+    if none.any():
+        est = np.atleast_1d(doe.spark_estimate(cells["speed_rpm"].to_numpy(float)[none],
+                                               cells["throttle_pct"].to_numpy(float)[none]))
+        best[none] = np.clip(est, st.spark_min_deg_btdc, st.spark_max_deg_btdc)
+    return best
+
+
+def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
+    """Next sparks to evaluate for one cell, or its resolution.
+
+    ``ev``: the cell's evaluations (any order).  Returns ``('need', [spark, ...])``
+    or ``('done', {status, mbt, border, raw, limited_by})``; spark values in deg BTDC.
+    """
+    lo, hi, lim = st.spark_min_deg_btdc, st.spark_max_deg_btdc, st.knock_limit
+    ok = ev[np.isfinite(ev["brake_torque_nm"]) & np.isfinite(ev["knock_index"])].sort_values("spark_deg_btdc")
+    ok = ok.drop_duplicates("spark_deg_btdc")
+    s, tq, kn = (ok[c].to_numpy(float) for c in ("spark_deg_btdc", "brake_torque_nm", "knock_index"))
+    eps = 1e-6
+    if s.size == 0:
+        return "done", {"status": "failed", "mbt": math.nan, "border": math.nan, "raw": math.nan,
+                        "limited_by": "infeasible"}
+    if kn[0] >= lim:   # knocks at the most retarded spark tried
+        if s[0] <= lo + eps:
+            return "done", {"status": "zone1", "mbt": math.nan, "border": lo, "raw": lo, "limited_by": "infeasible"}
+        guess = _knock_cross(s[0], kn[0], s[1], kn[1], lim) if s.size > 1 else s[0] - 8.0
+        return "need", sorted({max(lo, min(guess - 0.5, s[0] - 1.0)), max(lo, min(guess - 4.5, s[0] - 5.0))})
+    knocking = np.flatnonzero(kn >= lim)
+    kk = int(knocking[0]) if knocking.size else s.size
+    S, T = s[:kk], tq[:kk]
+    s_knock = s[kk] if kk < s.size else None
+    border = S[-1] if s_knock is not None else hi
+    imax = int(np.argmax(T))
+    if imax == S.size - 1:          # torque still rising at the top of the knock-safe range
+        if s_knock is None:
+            if S[-1] >= hi - eps:
+                return "done", {"status": "ok", "mbt": hi, "border": hi, "raw": hi, "limited_by": "spark_max"}
+            return "need", sorted({min(hi, S[-1] + 4.0), min(hi, S[-1] + 8.0)})
+        cross = _knock_cross(S[-1], kn[kk - 1], s_knock, kn[kk], lim)
+        if cross - S[-1] <= st.knock_tol_deg or s_knock - S[-1] <= st.knock_tol_deg:
+            # MBT beyond the knock border: estimated from all points (knocking ones too) if the peak is inside
+            j = int(np.argmax(tq))
+            mbt = _vertex(s[j - 1:j + 2], tq[j - 1:j + 2]) if 0 < j < s.size - 1 else math.nan
+            return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": S[-1], "limited_by": "knock"}
+        target = cross - 0.2 if cross - 0.2 < s_knock - 0.05 else 0.5 * (S[-1] + s_knock)
+        return "need", [max(S[-1] + 0.05, target)]
+    if imax == 0 and S[0] > lo + eps:   # torque falls from the most retarded spark: MBT further back
+        return "need", sorted({max(lo, S[0] - 4.0), max(lo, S[0] - 8.0)})
+    if imax == 0:
+        mbt = lo
+        spacing = 0.0
+    else:
+        mbt = _vertex(S[imax - 1:imax + 2], T[imax - 1:imax + 2])
+        spacing = max(S[imax] - S[imax - 1], S[imax + 1] - S[imax])
+    if spacing > st.refine_step_deg + eps:
+        h = st.refine_step_deg
+        cand = [c for c in (mbt - h, mbt, mbt + h) if lo <= c <= min(hi, border)]
+        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.2 * h]
+        if cand:
+            return "need", sorted(cand)
+    raw = mbt - st.safety_retard_deg
+    limited = "retard" if st.safety_retard_deg > 0 else "mbt"
+    return "done", {"status": "ok", "mbt": mbt, "border": border, "raw": max(lo, raw), "limited_by": limited}
+
+
+class _Runner:
+    """Batched evaluations: builds one plan per stage (rows of a cell consecutive, spark ascending)."""
+
+    def __init__(self, model, cells: pd.DataFrame, evaluate, progress):
+        self.model, self.cells, self.evaluate, self.progress = model, cells, evaluate, progress
+        self.frames: list[pd.DataFrame] = []
+        self.calls = 0
+        self.points = 0
+
+    def run(self, requests: dict[int, list[float]], tag: str) -> pd.DataFrame:
+        rows = []
+        for c in sorted(requests):
+            for k, s in enumerate(sorted(set(round(float(x), 2) for x in requests[c]))):
+                rows.append({"point_id": f"map-{tag}-c{c:04d}-{k:02d}", "cell": c, "stage": tag,
+                             "throttle_pct": self.cells.at[c, "throttle_pct"],
+                             "speed_rpm": self.cells.at[c, "speed_rpm"], "spark_deg_btdc": s,
+                             "lambda": self.cells.at[c, "lambda"]})
+        plan = pd.DataFrame(rows)
+        if plan.empty:
+            return plan
+        b, m = _predict(self.model, plan)
+        plan["bdur_10_90_deg"], plan["wiebe_m"] = b, m
+        good = np.isfinite(b)
+        out = plan.copy()
+        for col in _EVAL_KEEP:
+            out[col] = np.nan
+        out["converged"] = False
+        out["status"] = np.where(good, "", "failed: no combustion prediction").astype(object)
+        if good.any():
+            send = plan[good].reset_index(drop=True)
+            cols = ["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m"]
+            res = self.evaluate(send[cols])
+            self.calls += 1
+            self.points += len(send)
+            if len(res) != len(send):
+                raise ValueError(f"evaluate returned {len(res)} rows for a plan of {len(send)} points")
+            res = res.reset_index(drop=True)
+            if "point_id" in res.columns and list(res["point_id"].astype(str)) != list(send["point_id"]):
+                raise ValueError("evaluate returned the points in a different order than planned")
+            idx = np.flatnonzero(good)
+            for col in _EVAL_KEEP:
+                if col in res.columns:
+                    vals = res[col].to_numpy(dtype=object if col == "status" else float)
+                    if col == "converged":
+                        vals = res[col].astype(bool).to_numpy()
+                    out.loc[idx, col] = vals
+        self.frames.append(out)
+        if self.progress is not None:
+            self.progress(tag, len(plan))
+        return out
+
+    def evaluations(self) -> pd.DataFrame:
+        return pd.concat(self.frames, ignore_index=True) if self.frames else pd.DataFrame()
+
+
+@dataclass(frozen=True)
+class MapResult:
+    """ECU tables and how they were found.
+
+    Attributes
+    ----------
+    grid : EcuGrid
+    settings : MapSettings
+    cells : DataFrame
+        One row per cell (row-major, throttle outer): ``throttle_pct, speed_rpm,
+        lambda, spark_prior_deg_btdc`` (model's CA50 spark), ``spark_mbt_deg_btdc``
+        (NaN where not found), ``spark_border_deg_btdc`` (highest knock-safe
+        spark evaluated; spark_max if no knock met), ``spark_raw_deg_btdc``,
+        ``spark_deg_btdc`` (table), ``smoothing_shift_deg``,
+        ``spark_start_deg_btdc`` (retarded starting map), ``limited_by``
+        (mbt / knock / retard / spark_max / infeasible), ``feasible``,
+        ``infeasible_reason`` (doe.feasibility words), ``search_converged``,
+        verification results at the table spark (``brake_torque_nm,
+        knock_index, bmep_bar, air_mass_flow_kg_h, ...``), ``air_mg, fuel_mg,
+        injection_time_ms, duty_pct``, ``spark_source, injection_source``.
+    evaluations : DataFrame
+        Every evaluated point (``stage`` s1.. for the search, v1.. for verification).
+    stats : dict
+        Counts, timings, smoothing report.
+    spec_hash, model_name : str
+    """
+
+    grid: EcuGrid
+    settings: MapSettings
+    cells: pd.DataFrame
+    evaluations: pd.DataFrame
+    stats: dict
+    spec_hash: str
+    model_name: str
+
+    def table(self, column: str) -> np.ndarray:
+        """A cell column as an array of shape (n_throttle, n_speed)."""
+        return self.cells[column].to_numpy(float).reshape(self.grid.shape)
+
+
+def _feasibility(cells: pd.DataFrame, best: pd.DataFrame, st: MapSettings) -> pd.DataFrame:
+    plan = cells[["throttle_pct", "speed_rpm", "lambda"]].copy()
+    plan["spark_deg_btdc"] = best["spark_deg_btdc"].to_numpy()
+    return doe.feasibility(plan, evaluate=lambda _p: best[["knock_index", "bmep_bar"]].reset_index(drop=True),
+                           knock_margin=st.knock_margin, min_bmep_bar=st.min_bmep_bar)
+
+
+def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_table: LambdaTable | str | Path | None = None,
+               evaluate: Callable[[pd.DataFrame], pd.DataFrame] | None = None, settings: MapSettings | None = None,
+               step_deg: float = 0.5, progress: Callable[[str, int], None] | None = None) -> MapResult:
+    """Build the spark-advance, injection-time and target-lambda tables on an ECU grid.
+
+    Parameters
+    ----------
+    spec : EngineSpec
+        The engine (injector, fuel, cylinders; the model's spec hash must match).
+    model : combustion model
+        ``predict(points) -> DataFrame`` with ``bdur_10_90_deg, wiebe_m``;
+        ``check_spec(spec)`` or ``spec_hash`` if it has them (a mismatch raises).
+    grid : EcuGrid, optional
+        Default :class:`EcuGrid` () (11 throttle x 13 speed breakpoints).
+    lambda_table : LambdaTable or CSV path, optional
+        Target lambda; default :meth:`LambdaTable.default`.
+    evaluate : callable(plan DataFrame) -> DataFrame, optional
+        Runs the cycle model on a plan (contract columns + ``point_id``) and
+        returns one row per plan row, same order.  Default: in-process
+        :func:`engine_model.simulate` with ``step_deg``.  Called once per
+        search stage with all cells' candidates (rows of a cell consecutive).
+    settings : MapSettings, optional
+    step_deg : float
+        Crank-angle step of the default evaluator [deg].
+    progress : callable(stage, n_points), optional
+        Called after each batch.
+
+    Returns
+    -------
+    MapResult
+    """
+    t0 = time.perf_counter()
+    grid = EcuGrid() if grid is None else grid
+    st = MapSettings() if settings is None else settings
+    if not isinstance(grid, EcuGrid):
+        raise ValueError(f"grid must be an EcuGrid, got {type(grid).__name__}")
+    grid.check_spec(spec)
+    _check_model(model, spec)
+    if lambda_table is None:
+        lam_tab = LambdaTable.default(grid)
+    elif isinstance(lambda_table, LambdaTable):
+        lam_tab = lambda_table
+    else:
+        lam_tab = LambdaTable.from_csv(lambda_table)
+    if evaluate is None:
+        from .prepare import SolverSettings
+        from .simulate import simulate
+        solver = SolverSettings(step_deg=step_deg)
+
+        def evaluate(plan):
+            return simulate(spec, plan, solver)
+
+    cells = grid.cells().set_index("cell", drop=False)
+    cells["lambda"] = lam_tab.on_grid(grid).ravel()
+    lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
+    cells["spark_prior_deg_btdc"] = _model_spark(model, cells, st)
+    runner = _Runner(model, cells, evaluate, progress)
+
+    # ---- search stages
+    requests = {c: [min(hi, max(lo, s0 + o)) for o in st.coarse_offsets_deg]
+                for c, s0 in cells["spark_prior_deg_btdc"].items()}
+    resolved: dict[int, dict] = {}
+    stages = 0
+    for stage in range(1, st.max_stages + 1):
+        if not requests:
+            break
+        runner.run(requests, f"s{stage}")
+        stages = stage
+        ev = runner.evaluations()
+        requests = {}
+        for c, grp in ev.groupby("cell"):
+            if c in resolved:
+                continue
+            kind, what = _decide(grp, st)
+            if kind == "done":
+                resolved[c] = {**what, "search_converged": True}
+            else:
+                requests[c] = what
+    ev = runner.evaluations()
+    for c in cells["cell"]:
+        if c not in resolved:   # out of stages: best safe point so far
+            grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index"] < st.knock_limit)]
+            if grp.empty:
+                kind, what = _decide(ev[ev["cell"] == c], st)
+                what = what if kind == "done" else {"status": "zone1" if len(ev[ev["cell"] == c]) else "failed",
+                                                    "mbt": math.nan, "border": lo, "raw": lo,
+                                                    "limited_by": "infeasible"}
+            else:
+                b = grp.loc[grp["brake_torque_nm"].idxmax()]
+                knocked = ev[(ev["cell"] == c) & (ev["knock_index"] >= st.knock_limit)]
+                border = float(grp["spark_deg_btdc"].max()) if len(knocked) else hi
+                what = {"status": "ok", "mbt": math.nan, "border": border, "raw": float(b["spark_deg_btdc"]),
+                        "limited_by": "knock" if float(b["spark_deg_btdc"]) >= border - 1e-6 else "mbt"}
+            resolved[c] = {**what, "search_converged": False}
+    res = pd.DataFrame([resolved[c] for c in cells["cell"]], index=cells.index)
+    cells["spark_mbt_deg_btdc"] = res["mbt"].astype(float)
+    cells["spark_border_deg_btdc"] = res["border"].astype(float)
+    cells["spark_raw_deg_btdc"] = res["raw"].astype(float)
+    cells["limited_by"] = res["limited_by"].astype(str)
+    cells["search_converged"] = res["search_converged"].astype(bool)
+
+    # ---- zones (doe.feasibility on the evaluated point nearest the raw spark)
+    best_rows = []
+    for c in cells["cell"]:
+        grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"])]
+        raw = cells.at[c, "spark_raw_deg_btdc"]
+        if grp.empty or not math.isfinite(raw):
+            best_rows.append({"spark_deg_btdc": raw, "knock_index": math.nan, "bmep_bar": math.nan})
+        else:
+            r = grp.loc[(grp["spark_deg_btdc"] - raw).abs().idxmin()]
+            best_rows.append({"spark_deg_btdc": raw, "knock_index": r["knock_index"], "bmep_bar": r["bmep_bar"]})
+    flags = _feasibility(cells, pd.DataFrame(best_rows), st)
+    cells["feasible"] = flags["feasible"].to_numpy(bool)
+    cells["infeasible_reason"] = flags["infeasible_reason"].astype(str).to_numpy()
+    cells.loc[~cells["feasible"], "limited_by"] = "infeasible"
+
+    # ---- smoothing (feasible cells are data; others are filled; zone 1 pinned to spark_min)
+    zone1 = (cells["infeasible_reason"] == "knock-limited").to_numpy()
+    feas = cells["feasible"].to_numpy()
+    border = cells["spark_border_deg_btdc"].to_numpy(float)
+    upper = np.where(feas, border, np.where(np.isfinite(border), np.maximum(border, lo), hi))
+    upper = np.where(zone1, lo, upper)
+    shape = grid.shape
+    spark, sinfo = smooth_table(cells["spark_raw_deg_btdc"].to_numpy(float).reshape(shape),
+                                feas.astype(float).reshape(shape), np.full(shape, lo), upper.reshape(shape),
+                                st.max_second_diff_deg, stencil=~zone1.reshape(shape))
+    cells["spark_deg_btdc"] = spark.ravel()
+    cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
+    cells["spark_source"] = np.where(feas, "simulation", np.where(zone1, "spark_min", "fill"))
+
+    # ---- verification of the final table (knock re-checked; trapped air for the injection time)
+    ver = {}
+    todo = {int(c): [float(s)] for c, s in cells["spark_deg_btdc"].items()}
+    fixes = 0
+    for rnd in range(1, st.max_fix_rounds + 2):
+        out = runner.run(todo, f"v{rnd}")
+        todo = {}
+        for _, r in out.iterrows():
+            c = int(r["cell"])
+            ver[c] = r
+            k = r["knock_index"]
+            if feas[c] and np.isfinite(k) and k >= st.knock_limit and rnd <= st.max_fix_rounds:
+                grp = ev[(ev["cell"] == c) & np.isfinite(ev["knock_index"]) & (ev["knock_index"] > 0)]
+                slope = 0.05   # d ln(knock)/d spark [1/deg] fallback (typical of the search data)
+                if len(grp) >= 2:
+                    g = grp.sort_values("spark_deg_btdc")
+                    fit = np.polyfit(g["spark_deg_btdc"], np.log(g["knock_index"]), 1)[0]
+                    slope = fit if fit > 1e-3 else slope
+                new = max(lo, float(r["spark_deg_btdc"]) - max(0.5, math.log(k / st.knock_limit) / slope + 0.2))
+                cells.at[c, "spark_deg_btdc"] = new
+                cells.at[c, "limited_by"] = "knock"
+                todo[c] = [new]
+                fixes += 1
+        if not todo:
+            break
+    vt = pd.DataFrame([ver[c] for c in cells["cell"]], index=cells.index)
+    for col in ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
+                "fuel_mass_flow_kg_h", "exhaust_temp_k", "bdur_10_90_deg", "wiebe_m"):
+        cells[col] = vt[col].astype(float).to_numpy()
+    cells["verify_status"] = vt["status"].astype(str).to_numpy()
+    cells["verified"] = ~(feas & ~(cells["knock_index"].to_numpy(float) < st.knock_limit))
+    cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
+
+    # ---- injection time from the verified air flow; cells without it are filled
+    inj = injection_time_ms(cells["air_mass_flow_kg_h"], cells["speed_rpm"], cells["lambda"], spec, st.battery_v)
+    have = np.isfinite(inj["injection_time_ms"])
+    t_inj, iinfo = smooth_table(np.where(have, inj["injection_time_ms"], np.nan).reshape(shape),
+                                have.astype(float).reshape(shape), np.full(shape, inj["dead_time_ms"][0]),
+                                np.full(shape, 1e3 * 120.0 / grid.speed_rpm[0]), None)
+    for key in ("air_mg", "fuel_mg", "dead_time_ms", "duty_pct"):
+        cells[key] = inj[key]
+    cells["injection_time_ms"] = t_inj.ravel()
+    cells["injection_source"] = np.where(have, "simulation", "fill")
+    cells["spark_start_deg_btdc"] = np.maximum(cells["spark_deg_btdc"] - st.start_retard_deg, -30.0)
+
+    wall = time.perf_counter() - t0
+    d2t, d2n = second_differences(cells["spark_deg_btdc"].to_numpy(float).reshape(shape))
+    stats = {
+        "cells": len(cells), "feasible": int(feas.sum()),
+        "infeasible": {str(k): int(v) for k, v in cells.loc[~cells["feasible"], "infeasible_reason"]
+                       .value_counts().items()},
+        "limited_by": {str(k): int(v) for k, v in cells["limited_by"].value_counts().items()},
+        "search_stages": stages, "search_unconverged": int((~cells["search_converged"]).sum()),
+        "evaluate_calls": runner.calls, "simulated_points": runner.points,
+        "points_per_cell": round(runner.points / len(cells), 2), "knock_fixes": fixes,
+        "unverified_cells": int((~cells["verified"]).sum()),
+        "smoothing": {"lambda": sinfo["lam"], "bound_deg": st.max_second_diff_deg,
+                      "bound_met": sinfo["bound_met"], "max_shift_deg": sinfo["max_shift"],
+                      "rms_shift_deg": sinfo["rms_shift"],
+                      "max_second_diff_final_deg": float(np.nanmax(np.abs(np.concatenate([d2t.ravel(), d2n.ravel()]))))
+                      if d2t.size + d2n.size else 0.0},
+        "injection_fill_cells": int((~have).sum()),
+        "max_duty_pct": float(np.nanmax(inj["duty_pct"])) if have.any() else math.nan,
+        "battery_v": st.battery_v, "seconds": round(wall, 2),
+    }
+    return MapResult(grid=grid, settings=st, cells=cells.reset_index(drop=True), evaluations=runner.evaluations(),
+                     stats=stats, spec_hash=spec.spec_hash(), model_name=type(model).__name__)
