@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,7 @@ from ._blas import single_thread_blas
 from .burnlaw import INPUT_COLUMNS, OUTPUT_COLUMNS, check_points
 from .surrogates import FAMILIES, make_family
 
-__all__ = ["MapModel", "fit_map_model", "kfold_indices", "FORMAT"]
+__all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT"]
 
 #: ``kind`` tag and version of the saved JSON.
 FORMAT = {"kind": "mbc_map_model", "version": 1}
@@ -256,12 +257,16 @@ class MapModel:
         return pd.DataFrame(rows)
 
     def check_spec(self, spec) -> None:
-        """ValueError unless the model was fitted for ``spec`` (EngineSpec or hash)."""
+        """ValueError unless the model was fitted for ``spec`` (EngineSpec or hash).
+
+        A model fitted without a spec (``spec_hash_`` None) passes with a warning.
+        """
         self._check_fitted()
         want = _spec_hash(spec)
         if self.spec_hash_ is None:
-            raise ValueError(f"MapModel: the model records no engine spec hash; cannot confirm it belongs to "
-                             f"spec {want}")
+            warnings.warn(f"MapModel: the model records no engine spec hash (fitted without spec=); cannot "
+                          f"confirm it belongs to spec {want}", stacklevel=2)
+            return
         if want != self.spec_hash_:
             raise ValueError(f"MapModel: model was fitted for engine spec {self.spec_hash_}, not for spec "
                              f"{want}; refit it on data of this engine")
@@ -326,3 +331,8 @@ class MapModel:
 def fit_map_model(data: pd.DataFrame, spec=None, **settings) -> MapModel:
     """Function twin: ``MapModel(**settings).fit(data, spec)``."""
     return MapModel(**settings).fit(data, spec)
+
+
+def load(path, spec=None) -> MapModel:
+    """Function twin of :meth:`MapModel.load` (used by :func:`engine_model.maps.load_model`)."""
+    return MapModel.load(path, spec=spec)

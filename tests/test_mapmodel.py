@@ -118,6 +118,11 @@ def test_save_load_round_trip_and_spec_check(fitted, tmp_path):
         MapModel.load(bad)
     with pytest.raises(ValueError, match="not found"):
         MapModel.load(tmp_path / "missing.json")
+    # the table builder's loader reads it too, and refuses it for another engine
+    from engine_model import maps
+    assert maps.load_model(path).chosen_ == m.chosen_
+    with pytest.raises(ValueError, match="not for spec"):
+        maps._check_model(maps.load_model(path), other)
 
 
 def test_extrapolation_flag_and_fixed_factors(fitted):
