@@ -22,6 +22,7 @@ plan, any order and any chunking, and the same plan gives the same data.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 from dataclasses import dataclass, field
@@ -30,7 +31,7 @@ from typing import Callable, Mapping
 import numpy as np
 import pandas as pd
 
-from .burnlaw import INPUT_COLUMNS, BurnLaw, check_points
+from .burnlaw import INPUT_COLUMNS, OUTPUT_COLUMNS, BurnLaw, check_points
 from .doe import MIN_BMEP_BAR
 from .prepare import SolverSettings
 from .spec import EngineSpec, default_spec
@@ -157,19 +158,13 @@ def _effects_module():
 
 
 def _check_effects(effects) -> dict:
-    if effects is None:
+    if effects is None or (isinstance(effects, Mapping) and not effects):
         return {}
     if not isinstance(effects, Mapping):
         raise ValueError(f"VirtualBench: effects must be a dict {{name: {{param: value}}}}, got "
                          f"{type(effects).__name__}")
-    out = {}
-    for name, params in effects.items():
-        if params is None:
-            params = {}
-        if not isinstance(params, Mapping):
-            raise ValueError(f"VirtualBench: effects[{name!r}] must be a dict of parameters, got {params!r}")
-        out[str(name)] = {str(k): float(v) for k, v in params.items()}
-    return out
+    # names, parameters and ranges are checked by the effects library (ValueError listing valid names)
+    return _effects_module().check_effects(effects)
 
 
 @dataclass(frozen=True)
@@ -257,25 +252,47 @@ class VirtualBench:
         -------
         DataFrame
             The plan (``point_id`` added if missing) with ``bdur_10_90_deg``
-            [deg] and ``wiebe_m`` [-] of the hidden law.
+            [deg] and ``wiebe_m`` [-] of the hidden law at the plan's logged
+            inputs.  (With a spark-changing effect such as ``knock_retard`` the
+            engine burns at the spark it actually gets: see
+            :meth:`simulation_points`.)
         """
         p = self._plan(plan)
+        return self._with_law(p)
+
+    def _with_law(self, p: pd.DataFrame) -> pd.DataFrame:
         law = self.law.predict(p[list(INPUT_COLUMNS)])
+        if len(law) != len(p) or not set(OUTPUT_COLUMNS) <= set(law.columns):
+            raise ValueError(f"VirtualBench: law.predict returned {len(law)} rows / columns {list(law.columns)}; "
+                             f"expected {len(p)} rows with {list(OUTPUT_COLUMNS)}")
+        p = p.copy()
         p["bdur_10_90_deg"] = law["bdur_10_90_deg"].to_numpy(float)
         p["wiebe_m"] = law["wiebe_m"].to_numpy(float)
         return p
 
     def simulation_points(self, plan: pd.DataFrame) -> pd.DataFrame:
-        """What the truth engine simulates: plan + hidden law + effect inputs (``spec.*`` columns)."""
-        pts = self.hidden_law(plan)
+        """What the truth engine simulates: plan -> model-side effects -> hidden law at the resulting inputs."""
+        pts = self._plan(plan)
         if self.effects:
-            pts = _effects_module().apply_effects(pts, self.effects)
-        return pts
+            pts = _effects_module().apply_effects(pts, self.effects, spec=self.spec)
+        return self._with_law(pts)
 
     def _default_evaluate(self, points: pd.DataFrame) -> pd.DataFrame:
+        """In-process cycle model; rows that fail at a step above 0.5 deg are re-run once at 0.5 deg.
+
+        (A 1 deg step is unstable below ~10 % throttle, see ``doe.QUICK_SOLVER``;
+        a real engine does not 'fail' there, so the truth engine retries finer.)
+        """
         from .simulate import simulate  # late import: keeps `import engine_model.bench` light
 
-        return simulate(self.spec, points, solver=self.solver)
+        res = simulate(self.spec, points, solver=self.solver)
+        failed = res["status"].astype(str).str.startswith("failed").to_numpy()
+        if failed.any() and self.solver.step_deg > 0.5:
+            finer = dataclasses.replace(self.solver, step_deg=0.5)
+            redo = simulate(self.spec, points[failed].reset_index(drop=True), solver=finer)
+            redo.index = np.flatnonzero(failed)
+            res.loc[redo.index, redo.columns] = redo
+        return res
 
     # ------------------------------------------------------------------ the bench
     def measure(self, plan: pd.DataFrame,
@@ -342,9 +359,12 @@ class VirtualBench:
             out[col] = res[col].to_numpy(float)
         out["brake_power_kw"] = out["brake_torque_nm"] * 2.0 * math.pi * out["speed_rpm"] / 60.0 / 1e3
         if self.effects:
-            eff = _effects_module()
-            if hasattr(eff, "post_effects"):
-                out = eff.post_effects(out, self.effects).reset_index(drop=True)
+            # measurement-chain effects see the echoed simulation inputs (ambient state, effect columns)
+            echo = [c for c in res.columns if c in ("p_amb_pa", "t_amb_k") or c.startswith("gap_")]
+            echo = [c for c in echo if c not in out.columns]
+            tmp = pd.concat([out, res[echo]], axis=1)
+            tmp = _effects_module().post_effects(tmp, self.effects, eta_base=self.eta_trans, spec=self.spec)
+            out = tmp.drop(columns=echo).reset_index(drop=True)
         out = apply_noise(out, self.noise, self.seed)
         bad = status != "ok"
         out.loc[bad, list(MEASURED_COLUMNS)] = np.nan

@@ -161,3 +161,39 @@ def test_real_cycle_model_reproducible_and_knock_aborted():
     c = run_virtual_bench(p.iloc[:1], solver=QUICK_SOLVER, seed=2)
     assert c["brake_torque_nm"].iloc[0] != a["brake_torque_nm"].iloc[0] or \
         c["air_mass_flow_kg_h"].iloc[0] != a["air_mass_flow_kg_h"].iloc[0]
+
+
+def test_effects_change_what_they_should():
+    # stub simulator: torque follows the Woschni multiplier override (as the cycle model's would: less heat
+    # loss -> more work); the transmission effect acts on the measured torque only.
+    def ev(points):
+        out = points.copy()
+        hx = out["spec.heat_transfer.multiplier"].to_numpy(float) if "spec.heat_transfer.multiplier" in out else 1.0
+        out["brake_torque_nm"] = 50.0 / hx
+        for col, v in (("air_mass_flow_kg_h", 100.0), ("fuel_mass_flow_kg_h", 8.0), ("exhaust_temp_k", 1100.0),
+                       ("knock_index", 0.3), ("bmep_bar", 8.0), ("converged", True), ("status", "ok")):
+            out[col] = v
+        ev.seen = points
+        return out
+
+    base = VirtualBench(noise=NoiseModel.none()).measure(plan(3), evaluate=ev)
+    trans = VirtualBench(noise=NoiseModel.none(), effects={"transmission_efficiency": {"eta": 0.91}}).measure(
+        plan(3), evaluate=ev)
+    np.testing.assert_allclose(trans["brake_torque_nm"] / base["brake_torque_nm"], 0.91 / 0.95)
+    np.testing.assert_allclose(trans["air_mass_flow_kg_h"], base["air_mass_flow_kg_h"])
+    assert "spec.heat_transfer.multiplier" not in ev.seen.columns  # a measurement effect does not touch the model
+    heat = VirtualBench(noise=NoiseModel.none(), effects={"heat_transfer": {"factor": 1.25}}).measure(
+        plan(3), evaluate=ev)
+    assert np.allclose(ev.seen["spec.heat_transfer.multiplier"], 1.25)
+    np.testing.assert_allclose(heat["brake_torque_nm"], base["brake_torque_nm"] / 1.25)
+    # knock retard: the engine gets a later spark (and burns by the law at that spark), the log keeps the plan's
+    VirtualBench(noise=NoiseModel.none(), effects={"knock_retard": {"retard_deg": 8.0}}).measure(
+        plan(2, speed_rpm=[4000.0, 12000.0]), evaluate=ev)
+    sent = ev.seen
+    assert sent["spark_deg_btdc"].iloc[0] < 45.0 - 5.0  # WOT, low speed: most of the 8 deg
+    truth = BurnLaw().predict(sent)
+    np.testing.assert_allclose(sent["bdur_10_90_deg"], truth["bdur_10_90_deg"])
+    with pytest.raises(ValueError, match="unknown effect 'wall_film'; valid effects"):
+        VirtualBench(effects={"wall_film": {}})
+    with pytest.raises(ValueError, match="outside the documented range"):
+        VirtualBench(effects={"heat_transfer": {"factor": 5.0}})
