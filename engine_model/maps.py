@@ -44,7 +44,7 @@ from .spec import EngineSpec
 
 __all__ = [
     "EcuGrid", "LambdaTable", "MapSettings", "MapResult", "PriorModel", "build_maps", "injection_time_ms",
-    "load_model", "parse_breakpoints", "smooth_table", "second_differences",
+    "load_model", "parse_breakpoints", "smooth_table", "second_differences", "write_maps",
 ]
 
 #: Default ECU throttle breakpoints [%]: dense at small openings where load changes fastest.
@@ -268,7 +268,10 @@ class MapSettings:
     coarse_offsets_deg : tuple of float
         First-stage candidates relative to the model's CA50 = 9 deg ATDC spark.
     refine_step_deg : float
-        Spacing of the parabolic refinement around the torque peak [deg].
+        Spacing of the refinement points around the torque peak [deg].
+    mbt_window_deg : float
+        MBT = vertex of a least-squares parabola through the points within
+        this distance of the best point [deg] (averages torque noise).
     knock_tol_deg : float
         Knock border resolved when the highest knock-safe evaluated spark is
         within this of the interpolated border [deg].
@@ -296,7 +299,8 @@ class MapSettings:
     spark_min_deg_btdc: float = 0.0
     spark_max_deg_btdc: float = 70.0
     coarse_offsets_deg: tuple[float, ...] = (-12.0, -8.0, -4.0, 0.0, 4.0, 8.0)
-    refine_step_deg: float = 1.0
+    refine_step_deg: float = 2.0
+    mbt_window_deg: float = 6.0
     knock_tol_deg: float = 0.5
     max_stages: int = 5
     max_fix_rounds: int = 3
@@ -318,6 +322,7 @@ class MapSettings:
         object.__setattr__(self, "coarse_offsets_deg", offs)
         need(len(offs) >= 3 and len(set(offs)) == len(offs), "coarse_offsets_deg", "needs >= 3 distinct offsets")
         need(0.1 <= self.refine_step_deg <= 5, "refine_step_deg", "must lie in [0.1, 5] deg")
+        need(1 <= self.mbt_window_deg <= 20, "mbt_window_deg", "must lie in [1, 20] deg")
         need(0.05 <= self.knock_tol_deg <= 5, "knock_tol_deg", "must lie in [0.05, 5] deg")
         need(isinstance(self.max_stages, int) and 1 <= self.max_stages <= 20, "max_stages", "integer 1-20")
         need(isinstance(self.max_fix_rounds, int) and 0 <= self.max_fix_rounds <= 10, "max_fix_rounds",
@@ -532,6 +537,8 @@ def smooth_table(raw: np.ndarray, weight: np.ndarray, lower: np.ndarray, upper: 
                 else:
                     a = mid
             lam = 10 ** b
+    if lam == lam_lo:   # no smoothing was needed: data cells keep their exact values, holes take the fill
+        x = np.where(w > 0, r, x)
     shift = (x - r)[w > 0]
     info = {"lam": lam, "max_second_diff": worst(x),
             "bound_met": max_second_diff is None or worst(x) <= max_second_diff + 1e-9,
@@ -549,6 +556,24 @@ def _vertex(x, y) -> float:
     if not a < 0:
         return float(x1)
     return float(min(max(-b / (2 * a), x0), x2))
+
+
+def _peak(s: np.ndarray, t: np.ndarray, imax: int, window: float) -> float:
+    """Spark of maximum torque: least-squares parabola through the points within ``window`` of the best one.
+
+    Near MBT the torque curve is flat (0.1 % over +-2 deg) while converged-cycle
+    torque carries ~0.05-0.1 % noise from the cycle-convergence tolerance and
+    the warm start, so a 3-point vertex can wander by 2 deg; a least-squares
+    fit over +-``window`` deg averages that noise.  Falls back to the 3-point
+    vertex with fewer than 4 points or a non-concave fit.
+    """
+    near = np.abs(s - s[imax]) <= window + 1e-9
+    x, y = s[near], t[near]
+    if x.size >= 4 and np.any(x < s[imax]) and np.any(x > s[imax]):
+        a, b, _c = np.polyfit(x - s[imax], y, 2)
+        if a < 0:
+            return float(np.clip(s[imax] - b / (2 * a), x.min(), x.max()))
+    return _vertex(s[imax - 1:imax + 2], t[imax - 1:imax + 2])
 
 
 def _knock_cross(s1, k1, s2, k2, limit) -> float:
@@ -630,14 +655,11 @@ def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
         return "need", sorted({max(lo, S[0] - 4.0), max(lo, S[0] - 8.0)})
     if imax == 0:
         mbt = lo
-        spacing = 0.0
     else:
-        mbt = _vertex(S[imax - 1:imax + 2], T[imax - 1:imax + 2])
-        spacing = max(S[imax] - S[imax - 1], S[imax + 1] - S[imax])
-    if spacing > st.refine_step_deg + eps:
+        mbt = _peak(S, T, imax, st.mbt_window_deg)
         h = st.refine_step_deg
         cand = [c for c in (mbt - h, mbt, mbt + h) if lo <= c <= min(hi, border)]
-        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.2 * h]
+        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.4 * h]
         if cand:
             return "need", sorted(cand)
     raw = mbt - st.safety_retard_deg
@@ -873,7 +895,8 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     spark, sinfo = smooth_table(cells["spark_raw_deg_btdc"].to_numpy(float).reshape(shape),
                                 feas.astype(float).reshape(shape), np.full(shape, lo), upper.reshape(shape),
                                 st.max_second_diff_deg, stencil=~zone1.reshape(shape))
-    cells["spark_deg_btdc"] = spark.ravel()
+    # ECU resolution 0.1 deg, rounded down (towards retard: never past the knock border); this exact value is verified
+    cells["spark_deg_btdc"] = np.floor(spark.ravel() * 10.0 + 1e-6) / 10.0
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
     cells["spark_source"] = np.where(feas, "simulation", np.where(zone1, "spark_min", "fill"))
 
@@ -896,6 +919,7 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
                     fit = np.polyfit(g["spark_deg_btdc"], np.log(g["knock_index"]), 1)[0]
                     slope = fit if fit > 1e-3 else slope
                 new = max(lo, float(r["spark_deg_btdc"]) - max(0.5, math.log(k / st.knock_limit) / slope + 0.2))
+                new = math.floor(new * 10.0 + 1e-6) / 10.0
                 cells.at[c, "spark_deg_btdc"] = new
                 cells.at[c, "limited_by"] = "knock"
                 todo[c] = [new]
@@ -944,3 +968,10 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     }
     return MapResult(grid=grid, settings=st, cells=cells.reset_index(drop=True), evaluations=runner.evaluations(),
                      stats=stats, spec_hash=spec.spec_hash(), model_name=type(model).__name__)
+
+
+def write_maps(result: MapResult, out_dir, figures: bool = True) -> dict:
+    """Write the tables (long Parquet, wide CSVs, PNGs, summary) into ``out_dir``; see :mod:`engine_model.maps_io`."""
+    from .maps_io import write_maps as _write
+
+    return _write(result, out_dir, figures=figures)
