@@ -588,7 +588,7 @@ def _knock_cross(s1, k1, s2, k2, limit) -> float:
 # --------------------------------------------------------------------------- the spark search
 
 _EVAL_KEEP = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
-              "fuel_mass_flow_kg_h", "exhaust_temp_k", "converged", "status")
+              "fuel_mass_flow_kg_h", "exhaust_temp_k", "cycles_run", "converged", "status")
 
 
 def _model_spark(model, cells: pd.DataFrame, st: MapSettings) -> np.ndarray:
@@ -632,6 +632,12 @@ def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
             return "done", {"status": "zone1", "mbt": math.nan, "border": lo, "raw": lo, "limited_by": "infeasible"}
         guess = _knock_cross(s[0], kn[0], s[1], kn[1], lim) if s.size > 1 else s[0] - 8.0
         return "need", sorted({max(lo, min(guess - 0.5, s[0] - 1.0)), max(lo, min(guess - 4.5, s[0] - 5.0))})
+    bm = ok["bmep_bar"].to_numpy(float) if "bmep_bar" in ok.columns else np.full(s.size, np.inf)
+    if np.all(bm < st.min_bmep_bar):   # zone 2: no spark gives a holdable load; no refinement spent here
+        safe = kn < lim
+        j = int(np.argmax(np.where(safe, tq, -np.inf)))
+        return "done", {"status": "zone2", "mbt": math.nan, "border": s[safe].max() if safe.any() else lo,
+                        "raw": s[j], "limited_by": "infeasible"}
     knocking = np.flatnonzero(kn >= lim)
     kk = int(knocking[0]) if knocking.size else s.size
     S, T = s[:kk], tq[:kk]
@@ -902,9 +908,22 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
 
     # ---- verification of the final table (knock re-checked; trapped air for the injection time)
     ver = {}
-    todo = {int(c): [float(s)] for c, s in cells["spark_deg_btdc"].items()}
+    for c in cells["cell"][~feas]:   # not verified: nearest searched point (air flow for the injection fill)
+        grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"])]
+        if grp.empty:
+            grp = ev[ev["cell"] == c] if (ev["cell"] == c).any() else None
+        if grp is None:
+            ver[c] = pd.Series({"status": "not evaluated", **{k: math.nan for k in _EVAL_KEEP if k != "status"},
+                                "bdur_10_90_deg": math.nan, "wiebe_m": math.nan})
+            continue
+        r = grp.loc[(grp["spark_deg_btdc"] - cells.at[c, "spark_deg_btdc"]).abs().idxmin()].copy()
+        r["status"] = f"not verified (infeasible; nearest searched point {r['spark_deg_btdc']:g} deg)"
+        ver[c] = r
+    todo = {int(c): [float(s)] for c, s in cells["spark_deg_btdc"][feas].items()}
     fixes = 0
     for rnd in range(1, st.max_fix_rounds + 2):
+        if not todo:
+            break
         out = runner.run(todo, f"v{rnd}")
         todo = {}
         for _, r in out.iterrows():
@@ -929,10 +948,15 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     vt = pd.DataFrame([ver[c] for c in cells["cell"]], index=cells.index)
     for col in ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
                 "fuel_mass_flow_kg_h", "exhaust_temp_k", "bdur_10_90_deg", "wiebe_m"):
-        cells[col] = vt[col].astype(float).to_numpy()
+        cells[col] = pd.to_numeric(vt[col], errors="coerce").astype(float).to_numpy()
     cells["verify_status"] = vt["status"].astype(str).to_numpy()
     cells["verified"] = ~(feas & ~(cells["knock_index"].to_numpy(float) < st.knock_limit))
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
+    best_safe = ev[np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index"] < st.knock_limit)] \
+        .groupby("cell")["brake_torque_nm"].max()
+    ref = cells["cell"].map(best_safe).astype(float).to_numpy()
+    cells["torque_best_searched_nm"] = ref
+    cells["torque_loss_pct"] = np.where(feas, 100.0 * (1.0 - cells["brake_torque_nm"].to_numpy(float) / ref), np.nan)
 
     # ---- injection time from the verified air flow; cells without it are filled
     inj = injection_time_ms(cells["air_mass_flow_kg_h"], cells["speed_rpm"], cells["lambda"], spec, st.battery_v)
@@ -962,6 +986,8 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
                       "rms_shift_deg": sinfo["rms_shift"],
                       "max_second_diff_final_deg": float(np.nanmax(np.abs(np.concatenate([d2t.ravel(), d2n.ravel()]))))
                       if d2t.size + d2n.size else 0.0},
+        "torque_loss_pct": {"max": float(np.nanmax(cells["torque_loss_pct"])) if feas.any() else math.nan,
+                            "mean": float(np.nanmean(cells["torque_loss_pct"])) if feas.any() else math.nan},
         "injection_fill_cells": int((~have).sum()),
         "max_duty_pct": float(np.nanmax(inj["duty_pct"])) if have.any() else math.nan,
         "battery_v": st.battery_v, "seconds": round(wall, 2),
