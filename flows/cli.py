@@ -3,6 +3,7 @@
     mbc run      main job: bench data -> sweep on Dask -> report, under results/<run-id>/
     mbc sweep    simulate any plan of operating points in chunks on Dask workers (resumable)
     mbc plan     generate a DOE test plan into doe_plans/
+    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
@@ -93,6 +94,18 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def cmd_maps(args) -> int:
+    from .maps import run_maps
+
+    settings = {k: v for k, v in (("knock_margin", args.knock_margin), ("safety_retard_deg", args.safety_retard),
+                                  ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v))
+                if v is not None}
+    run_maps(args.model, args.out, spec=args.spec, throttle=args.throttle, speed=args.speed,
+             lambda_table=args.lambda_table, settings=settings, step_deg=args.step_deg, workers=args.workers,
+             dask_address=args.dask_address)
+    return 0
+
+
 def cmd_plan(args) -> int:
     from .plan import plan_from_args
 
@@ -159,6 +172,20 @@ def build_parser() -> argparse.ArgumentParser:
     common(c)
     dask(c)
     c.set_defaults(func=cmd_calibrate)
+
+    mp = sub.add_parser("maps", help="ECU tables (spark advance, injection time, lambda) from a combustion model")
+    mp.add_argument("--model", required=True, help="combustion model file (fitted global model, or prior JSON)")
+    mp.add_argument("--out", required=True, help="output folder; tables go to OUT/maps/, sweeps to OUT/sweeps/")
+    mp.add_argument("--throttle", default=None, help="throttle breakpoints [%%], '0,5,10,...' or 'start:stop:step'")
+    mp.add_argument("--speed", default=None, help="speed breakpoints [rpm], e.g. '1000:13000:1000' (the default)")
+    mp.add_argument("--lambda-table", default=None, help="target-lambda wide CSV (rows throttle %%, columns rpm)")
+    mp.add_argument("--knock-margin", type=float, default=None, help="keep knock_index < 1 - margin (default 0.15)")
+    mp.add_argument("--safety-retard", type=float, default=None, help="retard from MBT [deg] (default 0)")
+    mp.add_argument("--start-retard", type=float, default=None, help="starting-map retard [deg] (default 12)")
+    mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")
+    common(mp)
+    dask(mp)
+    mp.set_defaults(func=cmd_maps)
 
     from .plan import add_plan_arguments
 
