@@ -7,6 +7,8 @@
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
+    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks)
+    mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
 
 It lives in ``flows`` because it drives Prefect and Dask; ``engine_model``
 stays free of both.
@@ -121,6 +123,22 @@ def cmd_serve(args) -> int:
     return 0
 
 
+def cmd_gap(args) -> int:
+    from .gap import run_gap
+
+    run_gap(out=args.out, bench=args.bench, spec=args.spec, step_deg=args.step_deg, workers=args.workers,
+            dask_address=args.dask_address)
+    return 0
+
+
+def cmd_gap_benchmark(args) -> int:
+    from .gap import run_gap_benchmark
+
+    run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
+                      dask_address=args.dask_address)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbc", description="Model-based calibration of a restricted race engine")
     p.add_argument("--version", action="version", version=f"mbc {__version__}")
@@ -201,6 +219,20 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--interval", type=float, default=None, help="watcher schedule in seconds (default 600)")
     dask(sv)
     sv.set_defaults(func=cmd_serve)
+    gp = sub.add_parser("gap", help="sim-to-real gap diagnosis of bench data into <out>/gap/")
+    gp.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
+    gp.add_argument("--out", required=True, help="output folder (report under <out>/gap/)")
+    common(gp)
+    dask(gp)
+    gp.set_defaults(func=cmd_gap)
+
+    gb = sub.add_parser("gap-benchmark", help="gap diagnosis on withheld effects -> <out>/gap/gap_benchmark.csv")
+    gb.add_argument("--out", required=True, help="output folder")
+    gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
+    gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
+    gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
+    dask(gb)
+    gb.set_defaults(func=cmd_gap_benchmark)
     return p
 
 
