@@ -78,11 +78,26 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .run import run_pipeline
+    import dataclasses
 
-    run_pipeline(out=args.out, bench=args.bench, spec=args.spec, bdur_10_90=args.bdur_10_90,
-                 wiebe_m=args.wiebe_m, eta_trans=args.eta_trans, step_deg=args.step_deg, workers=args.workers,
-                 dask_address=args.dask_address)
+    from .run import QUICK, STAGES, RunSettings, run_pipeline
+
+    base = QUICK if args.quick else RunSettings()
+    changes = {"eta_trans": args.eta_trans}
+    if args.step_deg is not None:
+        changes["step_deg"] = args.step_deg
+    if args.doe_points is not None:
+        changes["doe_points"] = args.doe_points
+    if args.stages:
+        changes["stages"] = tuple(s.strip() for s in args.stages.split(",") if s.strip())
+        bad = [s for s in changes["stages"] if s not in STAGES]
+        if bad:
+            raise ValueError(f"--stages: unknown stage(s) {bad}; known: {','.join(STAGES)}")
+    for name in ("throttle", "speed"):
+        if getattr(args, name) is not None:
+            changes[f"map_{name}"] = getattr(args, name)
+    run_pipeline(out=args.out, bench=args.bench, spec=args.spec, settings=dataclasses.replace(base, **changes),
+                 workers=args.workers, dask_address=args.dask_address)
     return 0
 
 
@@ -168,13 +183,18 @@ def build_parser() -> argparse.ArgumentParser:
     dask(w)
     w.set_defaults(func=cmd_sweep)
 
-    r = sub.add_parser("run", help="main job: bench data -> sweep -> report under results/<run-id>/")
+    r = sub.add_parser("run", help="main job: bench data -> calibration -> virtual-bench DOE -> global model -> "
+                                   "ECU tables -> gap report, under results/<run-id>/")
     r.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
-    r.add_argument("--out", default=None, help="output folder (default results/<run-id>/)")
-    r.add_argument("--bdur-10-90", type=float, default=24.0, help="10-90 %% burn duration [deg] (default 24)")
-    r.add_argument("--wiebe-m", type=float, default=6.4, help="Wiebe shape m [-] (default 6.4)")
+    r.add_argument("--out", default=None, help="output folder (default results/<run-id>/); tables in OUT/maps/")
     r.add_argument("--eta-trans", type=float, default=0.95, help="transmission efficiency [-] (default 0.95)")
-    common(r)
+    r.add_argument("--doe-points", type=int, default=None, help="DOE points on the virtual bench (default 40)")
+    r.add_argument("--throttle", default=None, help="ECU throttle breakpoints [%%] ('0,5,10' or 'start:stop:step')")
+    r.add_argument("--speed", default=None, help="ECU speed breakpoints [rpm] (default 1000:13000:1000)")
+    r.add_argument("--stages", default=None, help="comma list of calibration,virtual_bench,model,maps,gap (default all)")
+    r.add_argument("--quick", action="store_true", help="small smoke run: 1 deg step, coarse searches, 3 x 3 tables")
+    r.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
+    r.add_argument("--step-deg", type=float, default=None, help="crank-angle step [deg] (default 0.5; --quick 1)")
     dask(r)
     r.set_defaults(func=cmd_run)
 

@@ -68,7 +68,9 @@ def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
         out = Path(results) / f"{stamp}-{path.stem}-{h[:8]}"
         entry = {"sha256": h, "processed": _dt.datetime.now().isoformat(timespec="seconds")}
         try:
-            run_flow(out=str(out), bench=str(path), progress=False)
+            # a new bench session re-calibrates (airflow match + identification); the map-building stages
+            # run from `mbc run` on the full data set
+            run_flow(out=str(out), bench=str(path), settings={"stages": ["calibration"]}, progress=False)
             entry.update(status="ok", results=str(out))
         except ValueError as exc:      # bad bench file: record why, do not retry the same content
             entry.update(status="refused", error=str(exc))
