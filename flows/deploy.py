@@ -58,8 +58,14 @@ def _load_processed(watch: Path) -> dict:
 
 
 @flow(name="bench-watch", log_prints=True, validate_parameters=False)
-def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
-    """Run the pipeline on every new bench file in ``watch``; results under ``results``/<time>-<file>-<hash>/."""
+def watch_flow(watch: str = "bench_inbox", results: str = "results", quick: bool = False) -> dict:
+    """Calibrate on every new bench file in ``watch``; results under ``results``/<time>-<file>-<hash>/.
+
+    ``quick``: the small settings of ``mbc run --quick`` (1 deg step, coarse searches).
+    """
+    from .run import QUICK, settings_to_dict
+
+    settings = {**(settings_to_dict(QUICK) if quick else {}), "stages": ["calibration"]}
     wdir = Path(watch)
     wdir.mkdir(parents=True, exist_ok=True)
     report = {}
@@ -70,7 +76,7 @@ def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
         try:
             # a new bench session re-calibrates (airflow match + identification); the map-building stages
             # run from `mbc run` on the full data set
-            run_flow(out=str(out), bench=str(path), settings={"stages": ["calibration"]}, progress=False)
+            run_flow(out=str(out), bench=str(path), settings=settings, progress=False)
             entry.update(status="ok", results=str(out))
         except ValueError as exc:      # bad bench file: record why, do not retry the same content
             entry.update(status="refused", error=str(exc))
