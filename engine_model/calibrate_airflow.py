@@ -177,6 +177,7 @@ class AirflowMatch:
     noise_pct: float
     simulations: int
     optimizer: dict = field(default_factory=dict)
+    at_bound: dict = field(default_factory=dict)
 
     @property
     def rms_ga_rel_pct(self) -> float:
@@ -197,7 +198,8 @@ class AirflowMatch:
 
     def summary(self) -> str:
         parts = [f"{k} = {self.values[k]:.4g} +- {self.ci95[k]:.2g} (95 %, assumed {self.noise_pct:g} % airflow "
-                 f"noise; +- {self.ci95_residual[k]:.2g} from the residual variance)" for k in self.names]
+                 f"noise; +- {self.ci95_residual[k]:.2g} from the residual variance)"
+                 + (" AT ITS BOUND (interval not meaningful)" if self.at_bound.get(k) else "") for k in self.names]
         miss = self.misses()
         s = (f"Airflow match over {len(self.table)} points with {len(self.names)} global parameters: "
              + "; ".join(parts) + f". Ga_REL rms {self.rms_ga_rel_pct:.2f} %, max |Ga_REL| "
@@ -288,7 +290,7 @@ def _default_evaluate(spec, solver=None) -> Evaluate:
 
 
 def match_airflow(meas: pd.DataFrame, evaluate: Evaluate | None = None, spec=None,
-                  parameters=DEFAULT_PARAMETERS, grid=(6, 6, 1), starts: int = 2, max_nfev: int = 15,
+                  parameters=DEFAULT_PARAMETERS, grid=(6, 6, 1), starts: int = 2, max_nfev: int = 12,
                   noise_pct: float = AIRFLOW_NOISE_PCT) -> AirflowMatch:
     """Identify global parameters so the simulated air mass flow matches the bench (paper's Ga_REL).
 
@@ -382,4 +384,5 @@ def match_airflow(meas: pd.DataFrame, evaluate: Evaluate | None = None, spec=Non
         stderr=dict(zip(names, map(float, se))), ci95=dict(zip(names, map(float, 1.96 * se))),
         ci95_residual=dict(zip(names, map(float, 1.96 * se_res))), correlation=np.round(corr, 4).tolist(),
         table=table, grid=grid_df, noise_pct=noise_pct, simulations=prob.simulations,
-        optimizer={"runs": runs, "jacobian_pct_per_unit": J.tolist()})
+        optimizer={"runs": runs, "jacobian_pct_per_unit": J.tolist()},
+        at_bound={q.name: bool(min(v - q.low, q.high - v) < 0.01 * (q.high - q.low)) for q, v in zip(params, x)})

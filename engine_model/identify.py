@@ -240,8 +240,8 @@ def point_surfaces(row: pd.Series, res: pd.DataFrame, surface: str = "spline", f
         piv = pd.DataFrame({"b": res["bdur_10_90_deg"].to_numpy(float), "m": res["wiebe_m"].to_numpy(float),
                             "v": vals}).pivot_table(index="b", columns="m", values="v", dropna=False)
         grid[col] = piv.reindex(index=b_axis, columns=m_axis).to_numpy(float)
-    fb = np.arange(b_axis[0], b_axis[-1] + 1e-9, fine_step[0])
-    fm = np.arange(m_axis[0], m_axis[-1] + 1e-9, fine_step[1])
+    fb = np.linspace(b_axis[0], b_axis[-1], int(round((b_axis[-1] - b_axis[0]) / fine_step[0])) + 1)
+    fm = np.linspace(m_axis[0], m_axis[-1], int(round((m_axis[-1] - m_axis[0]) / fine_step[1])) + 1)
     FB, FM = np.meshgrid(fb, fm, indexing="ij")
     kinds = set()
     fine = {}
@@ -480,7 +480,7 @@ def identify_quick(meas: pd.DataFrame, evaluate: Evaluate, overrides: dict | Non
 
 # --------------------------------------------------------------------------- eta_trans
 
-DEFAULT_ETAS = tuple(np.round(np.arange(0.90, 1.0001, 0.01), 3))
+DEFAULT_ETAS = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 3))
 
 
 def eta_sensitivity(ident: Identification, etas=DEFAULT_ETAS, use_airflow: bool = False) -> pd.DataFrame:
@@ -566,8 +566,8 @@ class JointFit:
                 parts.append(f"throttle {r.throttle_pct:g} %: eta_trans = {r.eta_best:.3f} "
                              f"(95 % {r.eta_lo:.3f}-{r.eta_hi:.3f}, {r.points} points)")
             else:
-                parts.append(f"throttle {r.throttle_pct:g} %: eta_trans not identifiable from these channels "
-                             f"(profile chi2 within 3.84 of its minimum over {r.eta_lo:.3f}-{r.eta_hi:.3f}; "
+                parts.append(f"throttle {r.throttle_pct:g} %: eta_trans not identified ({r.note}; profile "
+                             f"minimum {r.eta_best:.3f}, chi2 within 3.84 over {r.eta_lo:.3f}-{r.eta_hi:.3f}; "
                              f"{r.points} points)")
         return "Joint fit with a shared eta_trans per throttle: " + "; ".join(parts) + "."
 
@@ -592,6 +592,9 @@ def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
     per = pd.DataFrame(rows)
     prof = per.groupby(["throttle_pct", "eta_trans"], as_index=False).agg(chi2=("chi2", "sum"),
                                                                           points=("point_id", "nunique"))
+    informative = {pid: bool(set(terms_used(ps.row, use_airflow)) - {"power", "pmax", "ca50"})
+                   for pid, ps in ident.surfaces.items()}
+    th_info = per.assign(info=per["point_id"].map(informative)).groupby("throttle_pct")["info"].any()
     out = []
     for th, g in prof.groupby("throttle_pct"):
         g = g.sort_values("eta_trans")
@@ -599,7 +602,15 @@ def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
         inside = g["chi2"].to_numpy() <= g["chi2"].iloc[k] + CHI2_95_1DOF
         e = g["eta_trans"].to_numpy()
         ident_ = not (inside[0] and inside[-1])
+        if not ident_:
+            why = "flat profile: every eta has its own (BDUR10-90, m)"
+        elif not th_info[th]:
+            ident_ = False
+            why = ("power, CA50 and Pmax only: the profile is bounded by the edges of the (BDUR10-90, m) plane, "
+                   "not by data; needs exhaust temperature, BSFC or fuel flow")
+        else:
+            why = ""
         out.append({"throttle_pct": th, "eta_best": float(e[k]), "eta_lo": float(e[inside].min()),
                     "eta_hi": float(e[inside].max()), "identifiable": bool(ident_), "points": int(g["points"].iloc[0]),
-                    "chi2_min": float(g["chi2"].iloc[k])})
+                    "chi2_min": float(g["chi2"].iloc[k]), "note": why})
     return JointFit(prof, pd.DataFrame(out))

@@ -107,7 +107,8 @@ def cmd_calibrate(args) -> int:
     grid = tuple(int(v) for v in args.airflow_grid.split("x"))
     run_calibration(out=args.out, bench=args.bench, spec=args.spec, eta_trans=args.eta_trans,
                     step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address,
-                    n_bdur=args.n_bdur, n_m=args.n_m, airflow_grid=grid, airflow_max_nfev=args.airflow_max_nfev)
+                    n_bdur=args.n_bdur, n_m=args.n_m, airflow_grid=grid, airflow_max_nfev=args.airflow_max_nfev,
+                    airflow_step_deg=args.airflow_step_deg)
     return 0
 
 
@@ -206,7 +207,9 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--n-m", type=int, default=13, help="Wiebe m grid points over 2-8 (default 13)")
     c.add_argument("--airflow-grid", default="6x6x1",
                    help="coarse airflow search per parameter (exhaust x intake runner x restrictor Cd; default 6x6x1)")
-    c.add_argument("--airflow-max-nfev", type=int, default=15, help="least-squares iteration cap (default 15)")
+    c.add_argument("--airflow-max-nfev", type=int, default=12, help="least-squares iteration cap (default 12)")
+    c.add_argument("--airflow-step-deg", type=float, default=1.0,
+                   help="crank step of the airflow match [deg] (default 1.0; airflow within 0.2 %% of 0.5 deg)")
     common(c)
     dask(c)
     c.set_defaults(func=cmd_calibrate)
