@@ -87,3 +87,22 @@ def test_learning_curve_reports_failed_fits():
     curve = L.learning_curve(None, LAW, sizes=(16,), designs=("sobol",), seeds=(0,), families=("poly",),
                              identify_seeded=lambda s: L.noisy_truth(LAW, seed=s, feasible=feas))
     assert np.isnan(curve["rmse_bdur_10_90_deg"].iloc[0]) and "need >= 6" in curve["note"].iloc[0]
+
+
+def test_bench_identify_chain_on_two_points():
+    # the real chain (virtual bench -> Wiebe identification) on one runnable and one knock-aborted point, with a
+    # coarse 5 x 5 identification grid and the quick solver to keep it to ~30 simulations: the test checks the
+    # wiring (columns, NaN for the aborted point, statuses), not the identification's accuracy.
+    from engine_model.bench import NoiseModel, VirtualBench
+    from engine_model.doe import QUICK_SOLVER
+
+    bench = VirtualBench(noise=NoiseModel.none(), solver=QUICK_SOLVER)
+    plan = pd.DataFrame({"point_id": ["wot9k", "wot4k"], "throttle_pct": 100.0, "speed_rpm": [9000.0, 4000.0],
+                         "spark_deg_btdc": [45.0, 40.0], "lambda": 0.9})
+    out = L.bench_identify(bench, n_bdur=5, n_m=5)(plan)
+    assert list(out["point_id"]) == ["wot9k", "wot4k"]
+    assert list(out["bench_status"]) == ["ok", "knock_abort"]
+    assert np.isnan(out["bdur_10_90_deg"].iloc[1]) and out["identify_status"].iloc[1] == "not run: knock_abort"
+    assert out["identify_status"].iloc[0] != ""
+    if np.isfinite(out["bdur_10_90_deg"].iloc[0]):
+        assert 20 <= out["bdur_10_90_deg"].iloc[0] <= 50 and out["bdur_10_90_deg_std"].iloc[0] > 0
