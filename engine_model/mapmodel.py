@@ -85,6 +85,11 @@ class MapModel:
         to n if fewer points).
     seed : int
         Seed of the fold split and of the GP restarts.
+    extrapolation : {'clamp', 'extend'}
+        Outside the training box: 'clamp' evaluates the model at the nearest
+        point of the box (a flat continuation: a cubic surface cannot run away
+        when the table builder searches spark beyond the planned range);
+        'extend' evaluates the surface as it is.  Either way the row is flagged.
 
     Attributes (after ``fit``)
     ----------
@@ -99,13 +104,14 @@ class MapModel:
     """
 
     def __init__(self, *, families=("poly", "gp"), factors=INPUT_COLUMNS, outputs=OUTPUT_COLUMNS,
-                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0):
+                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp"):
         self.families = tuple(families)
         self.factors = tuple(factors)
         self.outputs = tuple(outputs)
         self.spark_reference = spark_reference
         self.k_folds = k_folds
         self.seed = seed
+        self.extrapolation = extrapolation
 
     # ------------------------------------------------------------------ inputs
     def _check_settings(self):
@@ -123,6 +129,8 @@ class MapModel:
             raise ValueError(f"MapModel: k_folds = {self.k_folds!r} must be an integer >= 2")
         if not self.outputs:
             raise ValueError("MapModel: no outputs")
+        if self.extrapolation not in ("clamp", "extend"):
+            raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose 'clamp' or 'extend'")
 
     def _model_coords(self, points: pd.DataFrame, who: str) -> dict[str, np.ndarray]:
         x = check_points(points, who)
@@ -237,9 +245,10 @@ class MapModel:
         xm = self._model_coords(points, "MapModel.predict")
         x = self._coded(xm)
         out = {}
+        xe = np.clip(x, -1.0, 1.0) if self.extrapolation == "clamp" else x
         for o in self.outputs:
             with single_thread_blas():
-                mean, std = self.models_[o].predict(x)
+                mean, std = self.models_[o].predict(xe)
             out[o], out[f"{o}_std"] = mean, std
         extra = np.zeros(len(points), dtype=bool)
         if x.size:
@@ -276,7 +285,8 @@ class MapModel:
         self._check_fitted()
         return {**FORMAT, "families": list(self.families), "factors": list(self.factors),
                 "outputs": list(self.outputs), "spark_reference": self.spark_reference,
-                "k_folds": self.k_folds, "seed": self.seed, "spec_hash": self.spec_hash_,
+                "k_folds": self.k_folds, "seed": self.seed, "extrapolation": self.extrapolation,
+                "spec_hash": self.spec_hash_,
                 "ranges": [[k, *v] for k, v in self.ranges_.items()],  # a list: JSON sorts keys, order matters
                 "fixed_factors": self.fixed_factors_,
                 "n_points": self.n_points_, "excluded": self.excluded_, "cv_rmse": self.cv_rmse_,
@@ -296,7 +306,8 @@ class MapModel:
                              f"{FORMAT['version']}")
         try:
             obj = cls(families=d["families"], factors=d["factors"], outputs=d["outputs"],
-                      spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"])
+                      spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"],
+                      extrapolation=d.get("extrapolation", "clamp"))
             obj.spec_hash_ = d["spec_hash"]
             obj.ranges_ = {k: (float(lo), float(hi)) for k, lo, hi in d["ranges"]}
             obj.fixed_factors_ = {k: float(v) for k, v in d["fixed_factors"].items()}

@@ -131,6 +131,12 @@ def test_extrapolation_flag_and_fixed_factors(fitted):
     p = pd.DataFrame({"throttle_pct": [50.0, 50.0], "speed_rpm": [8000.0, 14500.0],
                       "spark_deg_btdc": [40.0, 60.0], "lambda": 1.0})
     assert list(m.predict(p)["extrapolation"]) == [False, True]
+    # clamp (default): far outside the box the prediction is the value at the box edge, not a runaway cubic
+    far = pd.DataFrame({"throttle_pct": 50.0, "speed_rpm": 8000.0, "spark_deg_btdc": [40.0, 80.0, 89.0],
+                        "lambda": 1.0})
+    pf = m.predict(far)
+    assert pf["extrapolation"].tolist()[1:] == [True, True]
+    assert pf["bdur_10_90_deg"].iloc[1] == pytest.approx(pf["bdur_10_90_deg"].iloc[2])
     # lambda constant in the data -> recorded; another lambda is an extrapolation
     d, _ = synthetic(30, lambda x: 20 + x[:, 0], 0.01, 1)
     m2 = MapModel(spark_reference="absolute", families=("poly",)).fit(d)
