@@ -197,3 +197,11 @@ def test_effects_change_what_they_should():
         VirtualBench(effects={"wall_film": {}})
     with pytest.raises(ValueError, match="outside the documented range"):
         VirtualBench(effects={"heat_transfer": {"factor": 5.0}})
+
+
+def test_picklable_for_dask():
+    import pickle
+
+    vb = VirtualBench(seed=5, effects={"heat_transfer": {"factor": 1.1}})
+    vb2 = pickle.loads(pickle.dumps(vb))
+    pd.testing.assert_frame_equal(vb.measure(plan(4), evaluate=stub()), vb2.measure(plan(4), evaluate=stub()))
