@@ -34,7 +34,7 @@ from . import doe
 from .burnlaw import OUTPUT_COLUMNS
 from .mapmodel import MapModel
 
-__all__ = ["DESIGNS", "bench_identify", "design_plan", "grid_levels", "holdout_grid", "noisy_truth", "learning_curve",
+__all__ = ["DESIGNS", "bench_identify", "bench_feasibility", "design_plan", "grid_levels", "holdout_grid", "noisy_truth", "learning_curve",
            "summarise", "points_to_reach", "plot_learning_curve", "nearest_feasible"]
 
 #: Designs :func:`design_plan` knows.
@@ -161,6 +161,41 @@ def nearest_feasible(reference: pd.DataFrame, ok: np.ndarray, bounds: dict | Non
         d = ((x[:, None, :] - ref[None, :, :]) ** 2).sum(-1)
         return ok[np.argmin(d, axis=1)]
 
+    return feasible
+
+
+def bench_feasibility(bench, evaluate: Callable[[pd.DataFrame], pd.DataFrame] | None = None
+                      ) -> Callable[[pd.DataFrame], np.ndarray]:
+    """Feasibility by running the points on the (noise-free) virtual bench: True where status is 'ok'.
+
+    Results are cached by (throttle, speed, spark, lambda) rounded to 1e-6, so
+    a point is simulated once however many plans contain it.  The callable
+    carries ``cache`` (dict key -> status) for inspection.
+    """
+    import dataclasses
+
+    from .virtual_bench import NoiseModel
+
+    quiet = dataclasses.replace(bench, noise=NoiseModel.none())
+    cache: dict[tuple, str] = {}
+
+    def key(r):
+        return tuple(round(float(v), 6) for v in r)
+
+    def feasible(points: pd.DataFrame) -> np.ndarray:
+        cols = ["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]
+        keys = [key(r) for r in points[cols].itertuples(index=False, name=None)]
+        new = sorted({k for k in keys if k not in cache})
+        if new:
+            todo = pd.DataFrame(new, columns=cols)
+            todo.insert(0, "point_id", [f"feas-{len(cache) + i}" for i in range(len(todo))])
+            todo = todo.sort_values(["throttle_pct", "speed_rpm", "spark_deg_btdc"]).reset_index(drop=True)
+            res = quiet.measure(todo, evaluate=evaluate)
+            for k, st in zip((key(r) for r in todo[cols].itertuples(index=False, name=None)), res["status"]):
+                cache[k] = str(st)
+        return np.array([cache[k] == "ok" for k in keys])
+
+    feasible.cache = cache
     return feasible
 
 

@@ -106,3 +106,25 @@ def test_bench_identify_chain_on_two_points():
     assert out["identify_status"].iloc[0] != ""
     if np.isfinite(out["bdur_10_90_deg"].iloc[0]):
         assert 20 <= out["bdur_10_90_deg"].iloc[0] <= 50 and out["bdur_10_90_deg_std"].iloc[0] > 0
+
+
+def test_bench_feasibility_runs_each_point_once():
+    calls = []
+
+    def ev(points):
+        calls.append(len(points))
+        out = points.copy()
+        for col, v in (("brake_torque_nm", 40.0), ("air_mass_flow_kg_h", 100.0), ("fuel_mass_flow_kg_h", 8.0),
+                       ("exhaust_temp_k", 1100.0), ("converged", True), ("status", "ok"), ("bmep_bar", 8.0)):
+            out[col] = v
+        out["knock_index"] = np.where(out["speed_rpm"] < 5000, 1.5, 0.3)  # knock below 5000 rpm
+        return out
+
+    from engine_model.bench import VirtualBench
+
+    feas = L.bench_feasibility(VirtualBench(), evaluate=ev)
+    p = pd.DataFrame({"throttle_pct": [50.0, 50.0], "speed_rpm": [4000.0, 9000.0], "spark_deg_btdc": 30.0,
+                      "lambda": 1.0})
+    assert list(feas(p)) == [False, True]
+    assert list(feas(pd.concat([p, p.iloc[:1]]))) == [False, True, False]
+    assert calls == [2]  # the second call was served from the cache
