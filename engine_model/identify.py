@@ -246,9 +246,18 @@ def point_surfaces(row: pd.Series, res: pd.DataFrame, surface: str = "spline", f
     kinds = set()
     fine = {}
     for col in _OUTPUTS:
+        if col == "bsfc_g_kwh":
+            continue                     # derived below from the fuel and power surfaces
         s = _Surface(b_axis, m_axis, grid[col], surface)
         kinds.add(s.kind)
         fine[col] = s(FB, FM)
+    if True:
+        # BSFC is a ratio that is undefined (NaN) at nodes with no brake power (late, slow burns at part load);
+        # interpolating it would force the whole surface onto a global polynomial.  Derive it on the fine
+        # mesh from the two smooth surfaces instead.
+        p_fine = fine["brake_power_kw"]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fine["bsfc_g_kwh"] = np.where(p_fine > 0, fine["fuel_mass_flow_kg_h"] * 1e3 / p_fine, np.nan)
     fine["ca50_deg_atdc"] = wiebe.burn_angles(float(row["spark_deg_btdc"]), FB, FM)["ca50_deg_atdc"]
     bb, mm = np.meshgrid(b_axis, m_axis, indexing="ij")
     return PointSurfaces(str(row["point_id"]), row, b_axis, m_axis, grid, fb, fm, fine,

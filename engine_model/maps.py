@@ -44,7 +44,7 @@ from .spec import EngineSpec
 
 __all__ = [
     "EcuGrid", "LambdaTable", "MapSettings", "MapResult", "PriorModel", "build_maps", "injection_time_ms",
-    "load_model", "parse_breakpoints", "smooth_table", "second_differences",
+    "load_model", "parse_breakpoints", "smooth_table", "second_differences", "write_maps",
 ]
 
 #: Default ECU throttle breakpoints [%]: dense at small openings where load changes fastest.
@@ -268,7 +268,10 @@ class MapSettings:
     coarse_offsets_deg : tuple of float
         First-stage candidates relative to the model's CA50 = 9 deg ATDC spark.
     refine_step_deg : float
-        Spacing of the parabolic refinement around the torque peak [deg].
+        Spacing of the refinement points around the torque peak [deg].
+    mbt_window_deg : float
+        MBT = vertex of a least-squares parabola through the points within
+        this distance of the best point [deg] (averages torque noise).
     knock_tol_deg : float
         Knock border resolved when the highest knock-safe evaluated spark is
         within this of the interpolated border [deg].
@@ -296,7 +299,8 @@ class MapSettings:
     spark_min_deg_btdc: float = 0.0
     spark_max_deg_btdc: float = 70.0
     coarse_offsets_deg: tuple[float, ...] = (-12.0, -8.0, -4.0, 0.0, 4.0, 8.0)
-    refine_step_deg: float = 1.0
+    refine_step_deg: float = 2.0
+    mbt_window_deg: float = 6.0
     knock_tol_deg: float = 0.5
     max_stages: int = 5
     max_fix_rounds: int = 3
@@ -318,6 +322,7 @@ class MapSettings:
         object.__setattr__(self, "coarse_offsets_deg", offs)
         need(len(offs) >= 3 and len(set(offs)) == len(offs), "coarse_offsets_deg", "needs >= 3 distinct offsets")
         need(0.1 <= self.refine_step_deg <= 5, "refine_step_deg", "must lie in [0.1, 5] deg")
+        need(1 <= self.mbt_window_deg <= 20, "mbt_window_deg", "must lie in [1, 20] deg")
         need(0.05 <= self.knock_tol_deg <= 5, "knock_tol_deg", "must lie in [0.05, 5] deg")
         need(isinstance(self.max_stages, int) and 1 <= self.max_stages <= 20, "max_stages", "integer 1-20")
         need(isinstance(self.max_fix_rounds, int) and 0 <= self.max_fix_rounds <= 10, "max_fix_rounds",
@@ -532,6 +537,8 @@ def smooth_table(raw: np.ndarray, weight: np.ndarray, lower: np.ndarray, upper: 
                 else:
                     a = mid
             lam = 10 ** b
+    if lam == lam_lo:   # no smoothing was needed: data cells keep their exact values, holes take the fill
+        x = np.where(w > 0, r, x)
     shift = (x - r)[w > 0]
     info = {"lam": lam, "max_second_diff": worst(x),
             "bound_met": max_second_diff is None or worst(x) <= max_second_diff + 1e-9,
@@ -551,6 +558,24 @@ def _vertex(x, y) -> float:
     return float(min(max(-b / (2 * a), x0), x2))
 
 
+def _peak(s: np.ndarray, t: np.ndarray, imax: int, window: float) -> float:
+    """Spark of maximum torque: least-squares parabola through the points within ``window`` of the best one.
+
+    Near MBT the torque curve is flat (0.1 % over +-2 deg) while converged-cycle
+    torque carries ~0.05-0.1 % noise from the cycle-convergence tolerance and
+    the warm start, so a 3-point vertex can wander by 2 deg; a least-squares
+    fit over +-``window`` deg averages that noise.  Falls back to the 3-point
+    vertex with fewer than 4 points or a non-concave fit.
+    """
+    near = np.abs(s - s[imax]) <= window + 1e-9
+    x, y = s[near], t[near]
+    if x.size >= 4 and np.any(x < s[imax]) and np.any(x > s[imax]):
+        a, b, _c = np.polyfit(x - s[imax], y, 2)
+        if a < 0:
+            return float(np.clip(s[imax] - b / (2 * a), x.min(), x.max()))
+    return _vertex(s[imax - 1:imax + 2], t[imax - 1:imax + 2])
+
+
 def _knock_cross(s1, k1, s2, k2, limit) -> float:
     """Spark where the knock index reaches ``limit``, log-linear through two points (linear if not positive)."""
     if k1 > 0 and k2 > 0 and k1 != k2:
@@ -563,7 +588,7 @@ def _knock_cross(s1, k1, s2, k2, limit) -> float:
 # --------------------------------------------------------------------------- the spark search
 
 _EVAL_KEEP = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
-              "fuel_mass_flow_kg_h", "exhaust_temp_k", "converged", "status")
+              "fuel_mass_flow_kg_h", "exhaust_temp_k", "cycles_run", "converged", "status")
 
 
 def _model_spark(model, cells: pd.DataFrame, st: MapSettings) -> np.ndarray:
@@ -607,6 +632,12 @@ def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
             return "done", {"status": "zone1", "mbt": math.nan, "border": lo, "raw": lo, "limited_by": "infeasible"}
         guess = _knock_cross(s[0], kn[0], s[1], kn[1], lim) if s.size > 1 else s[0] - 8.0
         return "need", sorted({max(lo, min(guess - 0.5, s[0] - 1.0)), max(lo, min(guess - 4.5, s[0] - 5.0))})
+    bm = ok["bmep_bar"].to_numpy(float) if "bmep_bar" in ok.columns else np.full(s.size, np.inf)
+    if np.all(bm < st.min_bmep_bar):   # zone 2: no spark gives a holdable load; no refinement spent here
+        safe = kn < lim
+        j = int(np.argmax(np.where(safe, tq, -np.inf)))
+        return "done", {"status": "zone2", "mbt": math.nan, "border": s[safe].max() if safe.any() else lo,
+                        "raw": s[j], "limited_by": "infeasible"}
     knocking = np.flatnonzero(kn >= lim)
     kk = int(knocking[0]) if knocking.size else s.size
     S, T = s[:kk], tq[:kk]
@@ -630,14 +661,11 @@ def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
         return "need", sorted({max(lo, S[0] - 4.0), max(lo, S[0] - 8.0)})
     if imax == 0:
         mbt = lo
-        spacing = 0.0
     else:
-        mbt = _vertex(S[imax - 1:imax + 2], T[imax - 1:imax + 2])
-        spacing = max(S[imax] - S[imax - 1], S[imax + 1] - S[imax])
-    if spacing > st.refine_step_deg + eps:
+        mbt = _peak(S, T, imax, st.mbt_window_deg)
         h = st.refine_step_deg
         cand = [c for c in (mbt - h, mbt, mbt + h) if lo <= c <= min(hi, border)]
-        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.2 * h]
+        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.4 * h]
         if cand:
             return "need", sorted(cand)
     raw = mbt - st.safety_retard_deg
@@ -873,15 +901,29 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     spark, sinfo = smooth_table(cells["spark_raw_deg_btdc"].to_numpy(float).reshape(shape),
                                 feas.astype(float).reshape(shape), np.full(shape, lo), upper.reshape(shape),
                                 st.max_second_diff_deg, stencil=~zone1.reshape(shape))
-    cells["spark_deg_btdc"] = spark.ravel()
+    # ECU resolution 0.1 deg, rounded down (towards retard: never past the knock border); this exact value is verified
+    cells["spark_deg_btdc"] = np.floor(spark.ravel() * 10.0 + 1e-6) / 10.0
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
     cells["spark_source"] = np.where(feas, "simulation", np.where(zone1, "spark_min", "fill"))
 
     # ---- verification of the final table (knock re-checked; trapped air for the injection time)
     ver = {}
-    todo = {int(c): [float(s)] for c, s in cells["spark_deg_btdc"].items()}
+    for c in cells["cell"][~feas]:   # not verified: nearest searched point (air flow for the injection fill)
+        grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"])]
+        if grp.empty:
+            grp = ev[ev["cell"] == c] if (ev["cell"] == c).any() else None
+        if grp is None:
+            ver[c] = pd.Series({"status": "not evaluated", **{k: math.nan for k in _EVAL_KEEP if k != "status"},
+                                "bdur_10_90_deg": math.nan, "wiebe_m": math.nan})
+            continue
+        r = grp.loc[(grp["spark_deg_btdc"] - cells.at[c, "spark_deg_btdc"]).abs().idxmin()].copy()
+        r["status"] = f"not verified (infeasible; nearest searched point {r['spark_deg_btdc']:g} deg)"
+        ver[c] = r
+    todo = {int(c): [float(s)] for c, s in cells["spark_deg_btdc"][feas].items()}
     fixes = 0
     for rnd in range(1, st.max_fix_rounds + 2):
+        if not todo:
+            break
         out = runner.run(todo, f"v{rnd}")
         todo = {}
         for _, r in out.iterrows():
@@ -896,6 +938,7 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
                     fit = np.polyfit(g["spark_deg_btdc"], np.log(g["knock_index"]), 1)[0]
                     slope = fit if fit > 1e-3 else slope
                 new = max(lo, float(r["spark_deg_btdc"]) - max(0.5, math.log(k / st.knock_limit) / slope + 0.2))
+                new = math.floor(new * 10.0 + 1e-6) / 10.0
                 cells.at[c, "spark_deg_btdc"] = new
                 cells.at[c, "limited_by"] = "knock"
                 todo[c] = [new]
@@ -905,10 +948,15 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     vt = pd.DataFrame([ver[c] for c in cells["cell"]], index=cells.index)
     for col in ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
                 "fuel_mass_flow_kg_h", "exhaust_temp_k", "bdur_10_90_deg", "wiebe_m"):
-        cells[col] = vt[col].astype(float).to_numpy()
+        cells[col] = pd.to_numeric(vt[col], errors="coerce").astype(float).to_numpy()
     cells["verify_status"] = vt["status"].astype(str).to_numpy()
     cells["verified"] = ~(feas & ~(cells["knock_index"].to_numpy(float) < st.knock_limit))
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
+    best_safe = ev[np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index"] < st.knock_limit)] \
+        .groupby("cell")["brake_torque_nm"].max()
+    ref = cells["cell"].map(best_safe).astype(float).to_numpy()
+    cells["torque_best_searched_nm"] = ref
+    cells["torque_loss_pct"] = np.where(feas, 100.0 * (1.0 - cells["brake_torque_nm"].to_numpy(float) / ref), np.nan)
 
     # ---- injection time from the verified air flow; cells without it are filled
     inj = injection_time_ms(cells["air_mass_flow_kg_h"], cells["speed_rpm"], cells["lambda"], spec, st.battery_v)
@@ -938,9 +986,18 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
                       "rms_shift_deg": sinfo["rms_shift"],
                       "max_second_diff_final_deg": float(np.nanmax(np.abs(np.concatenate([d2t.ravel(), d2n.ravel()]))))
                       if d2t.size + d2n.size else 0.0},
+        "torque_loss_pct": {"max": float(np.nanmax(cells["torque_loss_pct"])) if feas.any() else math.nan,
+                            "mean": float(np.nanmean(cells["torque_loss_pct"])) if feas.any() else math.nan},
         "injection_fill_cells": int((~have).sum()),
         "max_duty_pct": float(np.nanmax(inj["duty_pct"])) if have.any() else math.nan,
         "battery_v": st.battery_v, "seconds": round(wall, 2),
     }
     return MapResult(grid=grid, settings=st, cells=cells.reset_index(drop=True), evaluations=runner.evaluations(),
                      stats=stats, spec_hash=spec.spec_hash(), model_name=type(model).__name__)
+
+
+def write_maps(result: MapResult, out_dir, figures: bool = True) -> dict:
+    """Write the tables (long Parquet, wide CSVs, PNGs, summary) into ``out_dir``; see :mod:`engine_model.maps_io`."""
+    from .maps_io import write_maps as _write
+
+    return _write(result, out_dir, figures=figures)

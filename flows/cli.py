@@ -3,9 +3,12 @@
     mbc run      main job: bench data -> sweep on Dask -> report, under results/<run-id>/
     mbc sweep    simulate any plan of operating points in chunks on Dask workers (resumable)
     mbc plan     generate a DOE test plan into doe_plans/
+    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
+    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks)
+    mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
 
 It lives in ``flows`` because it drives Prefect and Dask; ``engine_model``
 stays free of both.
@@ -75,11 +78,26 @@ def cmd_sweep(args) -> int:
 
 
 def cmd_run(args) -> int:
-    from .run import run_pipeline
+    import dataclasses
 
-    run_pipeline(out=args.out, bench=args.bench, spec=args.spec, bdur_10_90=args.bdur_10_90,
-                 wiebe_m=args.wiebe_m, eta_trans=args.eta_trans, step_deg=args.step_deg, workers=args.workers,
-                 dask_address=args.dask_address)
+    from .run import QUICK, STAGES, RunSettings, run_pipeline
+
+    base = QUICK if args.quick else RunSettings()
+    changes = {"eta_trans": args.eta_trans}
+    if args.step_deg is not None:
+        changes["step_deg"] = args.step_deg
+    if args.doe_points is not None:
+        changes["doe_points"] = args.doe_points
+    if args.stages:
+        changes["stages"] = tuple(s.strip() for s in args.stages.split(",") if s.strip())
+        bad = [s for s in changes["stages"] if s not in STAGES]
+        if bad:
+            raise ValueError(f"--stages: unknown stage(s) {bad}; known: {','.join(STAGES)}")
+    for name in ("throttle", "speed"):
+        if getattr(args, name) is not None:
+            changes[f"map_{name}"] = getattr(args, name)
+    run_pipeline(out=args.out, bench=args.bench, spec=args.spec, settings=dataclasses.replace(base, **changes),
+                 workers=args.workers, dask_address=args.dask_address)
     return 0
 
 
@@ -90,6 +108,18 @@ def cmd_calibrate(args) -> int:
     run_calibration(out=args.out, bench=args.bench, spec=args.spec, eta_trans=args.eta_trans,
                     step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address,
                     n_bdur=args.n_bdur, n_m=args.n_m, airflow_grid=grid, airflow_max_nfev=args.airflow_max_nfev)
+    return 0
+
+
+def cmd_maps(args) -> int:
+    from .maps import run_maps
+
+    settings = {k: v for k, v in (("knock_margin", args.knock_margin), ("safety_retard_deg", args.safety_retard),
+                                  ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v))
+                if v is not None}
+    run_maps(args.model, args.out, spec=args.spec, throttle=args.throttle, speed=args.speed,
+             lambda_table=args.lambda_table, settings=settings, step_deg=args.step_deg, workers=args.workers,
+             dask_address=args.dask_address)
     return 0
 
 
@@ -105,6 +135,22 @@ def cmd_serve(args) -> int:
 
     serve_deployments(watch=args.watch, cron=args.cron, interval_s=args.interval, workers=args.workers,
                       dask_address=args.dask_address, results=args.results)
+    return 0
+
+
+def cmd_gap(args) -> int:
+    from .gap import run_gap
+
+    run_gap(out=args.out, bench=args.bench, spec=args.spec, step_deg=args.step_deg, workers=args.workers,
+            dask_address=args.dask_address)
+    return 0
+
+
+def cmd_gap_benchmark(args) -> int:
+    from .gap import run_gap_benchmark
+
+    run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
+                      dask_address=args.dask_address)
     return 0
 
 
@@ -137,13 +183,18 @@ def build_parser() -> argparse.ArgumentParser:
     dask(w)
     w.set_defaults(func=cmd_sweep)
 
-    r = sub.add_parser("run", help="main job: bench data -> sweep -> report under results/<run-id>/")
+    r = sub.add_parser("run", help="main job: bench data -> calibration -> virtual-bench DOE -> global model -> "
+                                   "ECU tables -> gap report, under results/<run-id>/")
     r.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
-    r.add_argument("--out", default=None, help="output folder (default results/<run-id>/)")
-    r.add_argument("--bdur-10-90", type=float, default=24.0, help="10-90 %% burn duration [deg] (default 24)")
-    r.add_argument("--wiebe-m", type=float, default=6.4, help="Wiebe shape m [-] (default 6.4)")
+    r.add_argument("--out", default=None, help="output folder (default results/<run-id>/); tables in OUT/maps/")
     r.add_argument("--eta-trans", type=float, default=0.95, help="transmission efficiency [-] (default 0.95)")
-    common(r)
+    r.add_argument("--doe-points", type=int, default=None, help="DOE points on the virtual bench (default 40)")
+    r.add_argument("--throttle", default=None, help="ECU throttle breakpoints [%%] ('0,5,10' or 'start:stop:step')")
+    r.add_argument("--speed", default=None, help="ECU speed breakpoints [rpm] (default 1000:13000:1000)")
+    r.add_argument("--stages", default=None, help="comma list of calibration,virtual_bench,model,maps,gap (default all)")
+    r.add_argument("--quick", action="store_true", help="small smoke run: 1 deg step, coarse searches, 3 x 3 tables")
+    r.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
+    r.add_argument("--step-deg", type=float, default=None, help="crank-angle step [deg] (default 0.5; --quick 1)")
     dask(r)
     r.set_defaults(func=cmd_run)
 
@@ -160,6 +211,20 @@ def build_parser() -> argparse.ArgumentParser:
     dask(c)
     c.set_defaults(func=cmd_calibrate)
 
+    mp = sub.add_parser("maps", help="ECU tables (spark advance, injection time, lambda) from a combustion model")
+    mp.add_argument("--model", required=True, help="combustion model file (fitted global model, or prior JSON)")
+    mp.add_argument("--out", required=True, help="output folder; tables go to OUT/maps/, sweeps to OUT/sweeps/")
+    mp.add_argument("--throttle", default=None, help="throttle breakpoints [%%], '0,5,10,...' or 'start:stop:step'")
+    mp.add_argument("--speed", default=None, help="speed breakpoints [rpm], e.g. '1000:13000:1000' (the default)")
+    mp.add_argument("--lambda-table", default=None, help="target-lambda wide CSV (rows throttle %%, columns rpm)")
+    mp.add_argument("--knock-margin", type=float, default=None, help="keep knock_index < 1 - margin (default 0.15)")
+    mp.add_argument("--safety-retard", type=float, default=None, help="retard from MBT [deg] (default 0)")
+    mp.add_argument("--start-retard", type=float, default=None, help="starting-map retard [deg] (default 12)")
+    mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")
+    common(mp)
+    dask(mp)
+    mp.set_defaults(func=cmd_maps)
+
     from .plan import add_plan_arguments
 
     pl = sub.add_parser("plan", help="generate a DOE test plan (Parquet + CSV + metadata)")
@@ -174,6 +239,20 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--interval", type=float, default=None, help="watcher schedule in seconds (default 600)")
     dask(sv)
     sv.set_defaults(func=cmd_serve)
+    gp = sub.add_parser("gap", help="sim-to-real gap diagnosis of bench data into <out>/gap/")
+    gp.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
+    gp.add_argument("--out", required=True, help="output folder (report under <out>/gap/)")
+    common(gp)
+    dask(gp)
+    gp.set_defaults(func=cmd_gap)
+
+    gb = sub.add_parser("gap-benchmark", help="gap diagnosis on withheld effects -> <out>/gap/gap_benchmark.csv")
+    gb.add_argument("--out", required=True, help="output folder")
+    gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
+    gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
+    gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
+    dask(gb)
+    gb.set_defaults(func=cmd_gap_benchmark)
     return p
 
 

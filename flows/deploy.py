@@ -58,8 +58,14 @@ def _load_processed(watch: Path) -> dict:
 
 
 @flow(name="bench-watch", log_prints=True, validate_parameters=False)
-def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
-    """Run the pipeline on every new bench file in ``watch``; results under ``results``/<time>-<file>-<hash>/."""
+def watch_flow(watch: str = "bench_inbox", results: str = "results", quick: bool = False) -> dict:
+    """Calibrate on every new bench file in ``watch``; results under ``results``/<time>-<file>-<hash>/.
+
+    ``quick``: the small settings of ``mbc run --quick`` (1 deg step, coarse searches).
+    """
+    from .run import QUICK, settings_to_dict
+
+    settings = {**(settings_to_dict(QUICK) if quick else {}), "stages": ["calibration"]}
     wdir = Path(watch)
     wdir.mkdir(parents=True, exist_ok=True)
     report = {}
@@ -68,7 +74,9 @@ def watch_flow(watch: str = "bench_inbox", results: str = "results") -> dict:
         out = Path(results) / f"{stamp}-{path.stem}-{h[:8]}"
         entry = {"sha256": h, "processed": _dt.datetime.now().isoformat(timespec="seconds")}
         try:
-            run_flow(out=str(out), bench=str(path), progress=False)
+            # a new bench session re-calibrates (airflow match + identification); the map-building stages
+            # run from `mbc run` on the full data set
+            run_flow(out=str(out), bench=str(path), settings=settings, progress=False)
             entry.update(status="ok", results=str(out))
         except ValueError as exc:      # bad bench file: record why, do not retry the same content
             entry.update(status="refused", error=str(exc))

@@ -31,17 +31,27 @@ def test_mbc_simulate_bad_input_writes_nothing(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == [src]
 
 
-def test_mbc_run_on_packaged_data(prefect_api, tmp_path, capsys):
+def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
+    """The whole pipeline (small settings) through real Prefect + a 2-worker Dask cluster.
+
+    Checks the stage outputs the issues name, that the index page links only files that exist,
+    and that the run folder is only renamed from ``.partial`` once complete.
+    """
     out = tmp_path / "run"
-    assert main(["run", "--out", str(out)]) == 0
-    files = {p.name for p in out.iterdir()}
-    assert {"simulated.parquet", "comparison.csv", "wot_comparison.png", "manifest.json", "bench_sweep"} <= files
-    cmp_ = pd.read_csv(out / "comparison.csv")
-    assert len(cmp_) == 7 and cmp_["air_kg_h_sim"].notna().all()
-    man = json.loads((out / "manifest.json").read_text())
-    assert man["points"] == 7 and man["wiebe_m"] == 6.4 and man["status"] == "complete"
-    assert man["sweeps"]["bench_sweep"]["counts"]["points"] == 7
-    sweep_man = json.loads((out / "bench_sweep" / "manifest.json").read_text())
-    assert sweep_man["status"] == "complete" and sweep_man["dask"]["workers"] == 2
-    assert "wot_9000" in capsys.readouterr().out
+    assert main(["run", "--quick", "--out", str(out)]) == 0
+    for rel in ("index.html", "manifest.json", "calibration/airflow_match.parquet",
+                "calibration/combustion_params.parquet", "calibration/calibration.html", "model/model.json",
+                "model/learning_curve.png", "virtual_bench/measured.parquet", "maps/ecu_tables.parquet",
+                "maps/spark_advance.csv", "maps/injection_time.csv", "maps/lambda_target.csv"):
+        assert (out / rel).is_file(), rel
+    assert list((out / "gap").glob("*.png")), "gap report figures"
     assert not (tmp_path / "run.partial").exists()
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["status"] == "complete" and set(man["timings_s"]) >= {"calibration", "maps", "gap"}
+    air = pd.read_parquet(out / "calibration" / "airflow_match.parquet")
+    assert len(air) == 7 and air["ga_rel_pct"].notna().all()
+    spark = pd.read_csv(out / "maps" / "spark_advance.csv", index_col=0)
+    assert spark.shape == (3, 3)
+    page = (out / "index.html").read_text()
+    assert "(missing)" not in page and "maps/spark_advance.csv" in page
+    assert "index:" in capsys.readouterr().out

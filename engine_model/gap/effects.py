@@ -151,7 +151,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
             "in one gear and a roller chain"),),
         "Reference paper sec. 4 (eta_trans assumed 0.95); gear mesh 0.98-0.99 per stage, chain 0.97-0.98: "
         "Naunheimer et al., Automotive Transmissions, Springer 2011, ch. 3.",
-        "measurement", (("brake_torque_nm", -1), ("air_mass_flow_kg_h", 0))),
+        "measurement", (("brake_torque_nm", -1),)),
     Effect(
         "transmission_speed_loss",
         "Speed-dependent transmission loss (oil churning, windage, chain): the efficiency falls "
@@ -191,7 +191,7 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
             "change of the mean-piston-speed term C; the base C is 0.09 bar/(m/s)")),
         f"Chen & Flynn, SAE 650733 (1965); {_HEYWOOD}, sec. 13.6 (FMEP of SI engines 1-3 bar at "
         "high speed).",
-        "model", (("brake_torque_nm", -1), ("air_mass_flow_kg_h", 0))),
+        "model", (("brake_torque_nm", -1),)),
     Effect(
         "combustion_efficiency",
         "Incomplete combustion: a fraction of the trapped fuel leaves unburned (HC, CO beyond "

@@ -1,0 +1,121 @@
+"""The ``gap`` flow (sim-to-real gap diagnosis of bench data) and the ``gap-benchmark`` flow.
+
+    bench --validate--> base calibration (smooth combustion law, Gauss-Newton, sweeps on Dask)
+          --> one linearisation batch (reference + FD step per base and effect parameter)
+          --> diagnosis (residuals, where, which effect, how far it shrinks) --> <out>/gap/
+
+Every simulation runs as a sweep subflow on one shared Dask cluster
+(``flows.evaluate.SweepEvaluator``) into ``<out>/sweeps/``; a re-run into the same
+folder reads finished batches back.  No physics here: it all lives in
+``engine_model.gap``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import time
+from pathlib import Path
+
+from . import prefect_env
+from .evaluate import SweepEvaluator, shared_cluster
+from .sweep import DEFAULT_WORKERS
+
+from prefect import flow  # noqa: E402
+
+from engine_model import __version__, load_spec  # noqa: E402
+from engine_model.bench import load_bench  # noqa: E402
+from engine_model.io import read_table, write_json  # noqa: E402
+
+
+def _read_bench(bench: str | None):
+    """Packaged Table 2 by default; any bench-contract file otherwise (virtual-bench output included)."""
+    if bench is None:
+        return load_bench(None), "engine_model/data/r6_wot_table2.csv (paper Table 2)"
+    from engine_model.gap.diagnose import check_bench_outputs
+
+    p = Path(bench)
+    if not p.is_file():
+        raise ValueError(f"bench file not found: {p}")
+    df = read_table(p)
+    check_bench_outputs(df, str(p))
+    return df, str(p)
+
+
+def gap_into(out: Path, bench_df, source: str, spec_path: str | None, address: str, step_deg: float,
+             progress: bool, n_noise: int = 200) -> dict:
+    """The diagnosis into ``out`` on the Dask scheduler ``address``; returns a summary dict."""
+    from engine_model.gap.api import diagnose_bench
+    from engine_model.gap.report import write_gap_report
+
+    t0 = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    spec = load_spec(spec_path)
+    ev = SweepEvaluator(out / "sweeps", address, spec=spec_path, step_deg=step_deg, label="gap", progress=progress)
+    d, info = diagnose_bench(bench_df, ev, spec=spec, n_noise=n_noise, source=source)
+    notes = [f"Bench: {source}. Base calibration parameters: {info['theta']} (base: {info['base']}). "
+             f"{ev.points} simulations in {ev.calls} sweep batches."]
+    paths = write_gap_report(d, out, notes=notes)
+    summary = {"kind": "gap", "package_version": __version__, "spec_hash": spec.spec_hash(), "bench": source,
+               "created": _dt.datetime.now().isoformat(timespec="seconds"), "named": d.named, "best": d.best,
+               "confidence": d.confidence, "statement": d.statement, "gap_before_sigma": d.gap_before,
+               "gap_after_sigma": d.gap_after, "gap_reduction_pct": d.gap_reduction_pct,
+               "base_theta": info["theta"], "simulations": ev.points, "wall_s": round(time.perf_counter() - t0, 1),
+               "report": str(paths["markdown"])}
+    write_json(summary, out / "gap" / "run.json")
+    return summary
+
+
+@flow(name="gap", log_prints=False, validate_parameters=False)
+def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_deg: float = 0.5,
+             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+             n_noise: int = 200) -> dict:
+    """Gap diagnosis of ``bench`` (packaged Table 2 by default) into ``<out>/gap/``."""
+    df, source = _read_bench(bench)
+    with shared_cluster(workers, dask_address) as addr:
+        return gap_into(Path(out), df, source, spec, addr, step_deg, progress, n_noise)
+
+
+@flow(name="gap-benchmark", log_prints=False, validate_parameters=False)
+def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str | None = None,
+                       workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
+                       progress: bool = False) -> dict:
+    """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report)."""
+    from engine_model.gap.benchmark import BENCH_SOLVER, run_benchmark
+    from engine_model.gap.report import write_benchmark_report
+
+    kw = small_settings() if small else {}
+    with shared_cluster(workers, dask_address) as addr:
+        ev = SweepEvaluator(Path(out) / "sweeps", addr, spec=spec, step_deg=BENCH_SOLVER.step_deg,
+                            tolerance=BENCH_SOLVER.tolerance, label="bench", progress=progress)
+        res = run_benchmark(seeds=seeds, spec=load_spec(spec), evaluate=ev, progress=print, **kw)
+    paths = write_benchmark_report(res, out)
+    s = res["summary"]
+    return {"csv": str(paths["csv"]), "trials": len(res["table"]), "timing": res["timing"],
+            "summary": s.to_dict("records")}
+
+
+def small_settings() -> dict:
+    """``--small``: a few effects, one magnitude, a 20-point DOE (minutes, not tens of minutes)."""
+    return {"effects": ["transmission_efficiency", "heat_transfer", "restrictor", "combustion_efficiency"],
+            "magnitudes": (1.0,), "n_points": 20, "n_noise": 100}
+
+
+def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
+    """``mbc gap``: validate inputs, then run :func:`gap_flow` under one Prefect API."""
+    load_spec(spec)
+    _read_bench(bench)
+    with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
+        res = gap_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
+    print(res["statement"])
+    print(f"report: {res['report']}")
+    return res
+
+
+def run_gap_benchmark(out, seeds=3, small=False, spec=None, **kwargs) -> dict:
+    """``mbc gap-benchmark``: run :func:`gap_benchmark_flow` under one Prefect API."""
+    load_spec(spec)
+    with prefect_env.prefect_api(verbose=kwargs.get("progress", False)):
+        res = gap_benchmark_flow(out=str(out), seeds=seeds, small=small, spec=spec, **kwargs)
+    print(json.dumps(res, indent=1, default=str)[:4000])
+    return res
