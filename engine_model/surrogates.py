@@ -124,6 +124,10 @@ class PolynomialRSM:
         self.press_rmse_ = math.sqrt(best / n)
         return self
 
+    def noise_variance(self) -> float:
+        """Estimated variance of one observation about the surface (residual mean square)."""
+        return self.sigma2_
+
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std of the mean at coded inputs ``x`` (m, d)."""
         f = _design(np.asarray(x, float), self.terms_)
@@ -250,6 +254,10 @@ class GaussianProcess:
         self.alpha_ = linalg.cho_solve((self.chol_, True), r)
         self.nll_ = float(best.fun)
         return self
+
+    def noise_variance(self) -> float:
+        """Fitted homoscedastic noise variance (without the per-point ``y_std`` part)."""
+        return self.noise_var_
 
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std of the latent mean function at coded inputs ``x`` (m, d)."""
