@@ -164,11 +164,12 @@ class BurnLaw:
     ivc_deg_abdc : float
         Intake valve closing, 65 deg ABDC [P]; compression starts there.
     poly_exponent : float
-        Polytropic exponent of compression, 1.3 ([H] sec. 10.? typical 1.3).
+        Polytropic exponent of compression, 1.3 (a typical value of the
+        compression stroke of SI engines; [H]).
     ignition_weight : float
         The flame-speed state is taken at ``ignition_weight * spark`` deg
         BTDC: 1 would be the spark itself (governs the 0-10 % development
-        only), 0 TDC; 0.5 (engineering assumption) gives +-8 % BDUR10-90 for
+        only), 0 TDC; 0.5 (engineering assumption) gives +-5 % BDUR10-90 for
         +-10 deg spark around 50 deg BTDC at WOT 9000 rpm, the moderate spark
         sensitivity of the rapid-burning angle in [H] sec. 9.3.
     throttle_leak, throttle_demand_coeff : float
@@ -178,7 +179,8 @@ class BurnLaw:
         (restrictor losses; the bench's volumetric efficiency is ~0.85 [P]).
     residual_wot, residual_exponent, residual_max : float
         ``x_r = x_r,WOT (pi_WOT / pi)^0.8``, smoothly capped at 0.30: 6 % at WOT,
-        ~20 % at pi = 0.2, the usual part-load range ([H] fig 6-? / Fox et al.).
+        ~20 % at pi = 0.2, the usual part-load range (Fox, Cheng & Heywood,
+        SAE 931025).
     bdur_band_deg, m_band : (float, float)
         Smooth saturation bands of the outputs (plausible SI values): 14-45
         deg (the N^(1/3) scaling gives ~16 deg at 3000 rpm WOT, a fast-burning

@@ -49,6 +49,7 @@ __all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT"]
 FORMAT = {"kind": "mbc_map_model", "version": 1}
 
 _SPARK_REFS = ("estimate", "absolute")
+_STD_SCALE_RANGE = (0.5, 5.0)  # limits of the CV calibration factor of the predicted std
 
 
 def kfold_indices(n: int, k: int, seed: int) -> list[np.ndarray]:
@@ -85,11 +86,20 @@ class MapModel:
         to n if fewer points).
     seed : int
         Seed of the fold split and of the GP restarts.
+    extrapolation : {'clamp', 'extend'}
+        Outside the training box: 'clamp' evaluates the model at the nearest
+        point of the box (a flat continuation: a cubic surface cannot run away
+        when the table builder searches spark beyond the planned range);
+        'extend' evaluates the surface as it is.  Either way the row is flagged.
 
     Attributes (after ``fit``)
     ----------
     chosen_ : dict output -> family
     cv_rmse_ : dict output -> {family: K-fold CV RMSE [output unit]}
+    std_scale_ : dict output -> factor applied to the chosen family's std so
+        that, over the CV folds, std^2 matches the held-out error^2 minus the
+        fitted noise variance (clipped to 0.5-5); a polynomial's coefficient
+        std ignores the bias of a low-order surface, this puts it back
     models_ : dict output -> fitted estimator
     ranges_ : dict factor -> (low, high) in model coordinates (spark as offset)
     fixed_factors_ : dict factor -> value, factors constant in the data
@@ -99,13 +109,14 @@ class MapModel:
     """
 
     def __init__(self, *, families=("poly", "gp"), factors=INPUT_COLUMNS, outputs=OUTPUT_COLUMNS,
-                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0):
+                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp"):
         self.families = tuple(families)
         self.factors = tuple(factors)
         self.outputs = tuple(outputs)
         self.spark_reference = spark_reference
         self.k_folds = k_folds
         self.seed = seed
+        self.extrapolation = extrapolation
 
     # ------------------------------------------------------------------ inputs
     def _check_settings(self):
@@ -123,6 +134,8 @@ class MapModel:
             raise ValueError(f"MapModel: k_folds = {self.k_folds!r} must be an integer >= 2")
         if not self.outputs:
             raise ValueError("MapModel: no outputs")
+        if self.extrapolation not in ("clamp", "extend"):
+            raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose 'clamp' or 'extend'")
 
     def _model_coords(self, points: pd.DataFrame, who: str) -> dict[str, np.ndarray]:
         x = check_points(points, who)
@@ -188,24 +201,30 @@ class MapModel:
         x = self._coded({f: xm[f][ok] for f in self.ranges_})
         k = min(self.k_folds, n)
         folds = kfold_indices(n, k, self.seed)
-        self.cv_rmse_, self.chosen_, self.models_ = {}, {}, {}
+        self.cv_rmse_, self.chosen_, self.models_, self.std_scale_ = {}, {}, {}, {}
         for o in self.outputs:
             y = ys[o][ok]
             ystd = None
             if f"{o}_std" in data.columns:
                 ystd = pd.to_numeric(data[f"{o}_std"], errors="coerce").to_numpy(float)[ok]
-            scores = {}
+            scores, calib = {}, {}
             for fam in self.families:
-                err = np.empty(n)
+                err, sd, noise = np.empty(n), np.empty(n), np.empty(n)
                 for test in folds:
                     train = np.setdiff1d(np.arange(n), test)
                     est = make_family(fam, self.seed).fit(x[train], y[train],
                                                           None if ystd is None else ystd[train])
-                    err[test] = est.predict(x[test])[0] - y[test]
+                    mean, sd[test] = est.predict(x[test])
+                    err[test] = mean - y[test]
+                    noise[test] = est.noise_variance() + (0.0 if ystd is None else np.nan_to_num(ystd[test]) ** 2)
                 scores[fam] = float(math.sqrt(np.mean(err**2)))
+                # held-out err^2 = (model error)^2 + noise: scale the std so that it matches the model error
+                ratio = (np.mean(err**2) - np.mean(noise)) / max(float(np.mean(sd**2)), 1e-300)
+                calib[fam] = float(math.sqrt(min(max(ratio, _STD_SCALE_RANGE[0] ** 2), _STD_SCALE_RANGE[1] ** 2)))
             best = min(scores, key=scores.get)
             self.cv_rmse_[o] = scores
             self.chosen_[o] = best
+            self.std_scale_[o] = calib[best]
             self.models_[o] = make_family(best, self.seed).fit(x, y, ystd)
         self.n_points_ = n
         self.spec_hash_ = _spec_hash(spec)
@@ -237,10 +256,11 @@ class MapModel:
         xm = self._model_coords(points, "MapModel.predict")
         x = self._coded(xm)
         out = {}
+        xe = np.clip(x, -1.0, 1.0) if self.extrapolation == "clamp" else x
         for o in self.outputs:
             with single_thread_blas():
-                mean, std = self.models_[o].predict(x)
-            out[o], out[f"{o}_std"] = mean, std
+                mean, std = self.models_[o].predict(xe)
+            out[o], out[f"{o}_std"] = mean, std * self.std_scale_.get(o, 1.0)
         extra = np.zeros(len(points), dtype=bool)
         if x.size:
             extra |= np.any(np.abs(x) > 1.02, axis=1)
@@ -276,11 +296,12 @@ class MapModel:
         self._check_fitted()
         return {**FORMAT, "families": list(self.families), "factors": list(self.factors),
                 "outputs": list(self.outputs), "spark_reference": self.spark_reference,
-                "k_folds": self.k_folds, "seed": self.seed, "spec_hash": self.spec_hash_,
+                "k_folds": self.k_folds, "seed": self.seed, "extrapolation": self.extrapolation,
+                "spec_hash": self.spec_hash_,
                 "ranges": [[k, *v] for k, v in self.ranges_.items()],  # a list: JSON sorts keys, order matters
                 "fixed_factors": self.fixed_factors_,
                 "n_points": self.n_points_, "excluded": self.excluded_, "cv_rmse": self.cv_rmse_,
-                "chosen": self.chosen_, "models": {o: m.to_dict() for o, m in self.models_.items()}}
+                "chosen": self.chosen_, "std_scale": self.std_scale_, "models": {o: m.to_dict() for o, m in self.models_.items()}}
 
     def save(self, path) -> Path:
         """Write the fitted model as JSON (atomically)."""
@@ -296,7 +317,8 @@ class MapModel:
                              f"{FORMAT['version']}")
         try:
             obj = cls(families=d["families"], factors=d["factors"], outputs=d["outputs"],
-                      spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"])
+                      spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"],
+                      extrapolation=d.get("extrapolation", "clamp"))
             obj.spec_hash_ = d["spec_hash"]
             obj.ranges_ = {k: (float(lo), float(hi)) for k, lo, hi in d["ranges"]}
             obj.fixed_factors_ = {k: float(v) for k, v in d["fixed_factors"].items()}
@@ -304,6 +326,7 @@ class MapModel:
             obj.excluded_ = list(d["excluded"])
             obj.cv_rmse_ = d["cv_rmse"]
             obj.chosen_ = d["chosen"]
+            obj.std_scale_ = {k: float(v) for k, v in d.get("std_scale", {}).items()}
             obj.models_ = {o: FAMILIES[m["family"]].from_dict(m) for o, m in d["models"].items()}
         except (KeyError, TypeError) as exc:
             raise ValueError(f"{source}: map model file is incomplete or malformed ({exc!r})") from None

@@ -32,7 +32,6 @@ import itertools
 import math
 
 import numpy as np
-from scipy import linalg, optimize
 
 __all__ = ["PolynomialRSM", "GaussianProcess", "monomials", "FAMILIES", "make_family"]
 
@@ -125,6 +124,10 @@ class PolynomialRSM:
         self.press_rmse_ = math.sqrt(best / n)
         return self
 
+    def noise_variance(self) -> float:
+        """Estimated variance of one observation about the surface (residual mean square)."""
+        return self.sigma2_
+
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std of the mean at coded inputs ``x`` (m, d)."""
         f = _design(np.asarray(x, float), self.terms_)
@@ -191,6 +194,7 @@ class GaussianProcess:
 
     def _nll(self, theta, x, r, extra, sq):
         """Negative log marginal likelihood and its gradient w.r.t. log(s2, l_1..l_d, s_n^2) [RW eq. 5.9]."""
+        from scipy import linalg
         s2, ell, sn2 = math.exp(theta[0]), np.exp(theta[1:-1]), math.exp(theta[-1])
         u = sq / ell**2                                   # (n, n, d) squared scaled differences
         rr = np.sqrt(5.0 * np.sum(u, axis=-1))            # sqrt(5) r
@@ -216,6 +220,7 @@ class GaussianProcess:
 
     def fit(self, x: np.ndarray, y: np.ndarray, y_std: np.ndarray | None = None) -> "GaussianProcess":
         """Fit on coded inputs ``x`` (n, d), output ``y`` (n,), optional per-point noise std ``y_std`` (n,)."""
+        from scipy import linalg, optimize  # late import: scipy.optimize costs ~1 s at package import
         x = np.atleast_2d(np.asarray(x, float))
         y = np.asarray(y, float)
         n, d = x.shape
@@ -250,8 +255,13 @@ class GaussianProcess:
         self.nll_ = float(best.fun)
         return self
 
+    def noise_variance(self) -> float:
+        """Fitted homoscedastic noise variance (without the per-point ``y_std`` part)."""
+        return self.noise_var_
+
     def predict(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Mean and std of the latent mean function at coded inputs ``x`` (m, d)."""
+        from scipy import linalg
         x = np.atleast_2d(np.asarray(x, float))
         ks = self.signal_var_ * _matern52(x, self.x_train_, self.length_scales_)
         mean = self._trend_matrix(x) @ self.trend_ + ks @ self.alpha_

@@ -87,3 +87,44 @@ def test_learning_curve_reports_failed_fits():
     curve = L.learning_curve(None, LAW, sizes=(16,), designs=("sobol",), seeds=(0,), families=("poly",),
                              identify_seeded=lambda s: L.noisy_truth(LAW, seed=s, feasible=feas))
     assert np.isnan(curve["rmse_bdur_10_90_deg"].iloc[0]) and "need >= 6" in curve["note"].iloc[0]
+
+
+def test_bench_identify_chain_on_two_points():
+    # the real chain (virtual bench -> Wiebe identification) on one runnable and one knock-aborted point, with a
+    # coarse 5 x 5 identification grid and the quick solver to keep it to ~30 simulations: the test checks the
+    # wiring (columns, NaN for the aborted point, statuses), not the identification's accuracy.
+    from engine_model.bench import NoiseModel, VirtualBench
+    from engine_model.doe import QUICK_SOLVER
+
+    bench = VirtualBench(noise=NoiseModel.none(), solver=QUICK_SOLVER)
+    plan = pd.DataFrame({"point_id": ["wot9k", "wot4k"], "throttle_pct": 100.0, "speed_rpm": [9000.0, 4000.0],
+                         "spark_deg_btdc": [45.0, 40.0], "lambda": 0.9})
+    out = L.bench_identify(bench, n_bdur=5, n_m=5)(plan)
+    assert list(out["point_id"]) == ["wot9k", "wot4k"]
+    assert list(out["bench_status"]) == ["ok", "knock_abort"]
+    assert np.isnan(out["bdur_10_90_deg"].iloc[1]) and out["identify_status"].iloc[1] == "not run: knock_abort"
+    assert out["identify_status"].iloc[0] != ""
+    if np.isfinite(out["bdur_10_90_deg"].iloc[0]):
+        assert 20 <= out["bdur_10_90_deg"].iloc[0] <= 50 and out["bdur_10_90_deg_std"].iloc[0] > 0
+
+
+def test_bench_feasibility_runs_each_point_once():
+    calls = []
+
+    def ev(points):
+        calls.append(len(points))
+        out = points.copy()
+        for col, v in (("brake_torque_nm", 40.0), ("air_mass_flow_kg_h", 100.0), ("fuel_mass_flow_kg_h", 8.0),
+                       ("exhaust_temp_k", 1100.0), ("converged", True), ("status", "ok"), ("bmep_bar", 8.0)):
+            out[col] = v
+        out["knock_index"] = np.where(out["speed_rpm"] < 5000, 1.5, 0.3)  # knock below 5000 rpm
+        return out
+
+    from engine_model.bench import VirtualBench
+
+    feas = L.bench_feasibility(VirtualBench(), evaluate=ev)
+    p = pd.DataFrame({"throttle_pct": [50.0, 50.0], "speed_rpm": [4000.0, 9000.0], "spark_deg_btdc": 30.0,
+                      "lambda": 1.0})
+    assert list(feas(p)) == [False, True]
+    assert list(feas(pd.concat([p, p.iloc[:1]]))) == [False, True, False]
+    assert calls == [2]  # the second call was served from the cache

@@ -197,3 +197,23 @@ def test_effects_change_what_they_should():
         VirtualBench(effects={"wall_film": {}})
     with pytest.raises(ValueError, match="outside the documented range"):
         VirtualBench(effects={"heat_transfer": {"factor": 5.0}})
+
+
+def test_picklable_for_dask():
+    import pickle
+
+    vb = VirtualBench(seed=5, effects={"heat_transfer": {"factor": 1.1}})
+    vb2 = pickle.loads(pickle.dumps(vb))
+    pd.testing.assert_frame_equal(vb.measure(plan(4), evaluate=stub()), vb2.measure(plan(4), evaluate=stub()))
+
+
+def test_real_cycle_model_with_a_model_side_effect():
+    # one WOT 9000 rpm point with and without +30 % Woschni heat transfer (the gap library's realistic value):
+    # more wall heat loss -> less torque and a cooler exhaust, both far beyond the bench noise (noise off here)
+    p = pd.DataFrame({"point_id": ["wot9k"], "speed_rpm": [9000.0], "throttle_pct": [100.0],
+                      "spark_deg_btdc": [40.0], "lambda": [0.9]})
+    base = run_virtual_bench(p, solver=QUICK_SOLVER, noise=NoiseModel.none())
+    hot = run_virtual_bench(p, solver=QUICK_SOLVER, noise=NoiseModel.none(), effects={"heat_transfer": {"factor": 1.3}})
+    assert (base["status"] == "ok").all() and (hot["status"] == "ok").all()
+    assert hot["brake_torque_nm"].iloc[0] < 0.99 * base["brake_torque_nm"].iloc[0]
+    assert hot["exhaust_temp_k"].iloc[0] < base["exhaust_temp_k"].iloc[0] - 5.0
