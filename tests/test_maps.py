@@ -374,3 +374,15 @@ def test_search_recovers_the_synthetic_engine():
         cell = int(c.loc[(t, n), "cell"])
         assert set(ev.loc[ev["cell"] == cell, "stage"]) == {"s1"}
     assert res.stats["points_per_cell"] < 14
+
+
+def test_bounded_quadratic_matches_scipy():
+    from scipy.optimize import lsq_linear
+
+    from engine_model.maps_tables import _bounded_quadratic
+    rng = np.random.default_rng(7)
+    m = rng.normal(size=(30, 12))
+    y = rng.normal(size=30)
+    lo, hi = np.full(12, -0.2), np.full(12, 0.3)
+    ref = lsq_linear(m, y, bounds=(lo, hi), method="bvls").x
+    np.testing.assert_allclose(_bounded_quadratic(m.T @ m, m.T @ y, lo, hi), ref, atol=1e-8)
