@@ -170,3 +170,60 @@ def _has_tabulate() -> bool:
     except ImportError:
         return False
     return True
+
+
+def write_index(folder, title: str, summary: list[tuple[str, str]], sections: list) -> Path:
+    """Write ``<folder>/index.html``: a run's landing page linking every figure and file (atomically).
+
+    Parameters
+    ----------
+    folder : path
+        The run folder; every linked path must lie inside it.
+    title : str
+    summary : list of (label, value)
+        Key figures shown as a table at the top (e.g. wall time, Ga_REL range).
+    sections : list of (heading, text, paths)
+        ``paths`` relative to ``folder`` (or absolute inside it); PNGs are shown
+        as thumbnails linking to the full image, other files as links with their
+        size.  Paths that do not exist are listed as "missing" rather than
+        silently left out, so a broken stage is visible on the page.
+    """
+    import html
+
+    from .io import write_text
+
+    folder = Path(folder)
+    esc = html.escape
+    ht = ["<!doctype html><html><head><meta charset='utf-8'>", f"<title>{esc(title)}</title>",
+          "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
+          "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 8px;text-align:left}"
+          ".figs{display:flex;flex-wrap:wrap;gap:12px}.figs figure{margin:0;width:370px}"
+          ".figs img{width:100%;border:1px solid #ddd}.missing{color:#b00}</style></head><body>",
+          f"<h1>{esc(title)}</h1>", "<table>"]
+    ht += [f"<tr><th>{esc(k)}</th><td>{esc(str(v))}</td></tr>" for k, v in summary]
+    ht.append("</table>")
+    for heading, text, paths in sections:
+        ht.append(f"<h2>{esc(heading)}</h2>")
+        if text:
+            ht.append(f"<p>{esc(text)}</p>")
+        figs, files = [], []
+        for p in paths:
+            p = Path(p)
+            rel = p.relative_to(folder) if p.is_absolute() else p
+            full = folder / rel
+            href = esc(rel.as_posix())
+            if not full.exists():
+                files.append(f"<li class='missing'>{href} (missing)</li>")
+            elif rel.suffix.lower() == ".png":
+                figs.append(f"<figure><a href='{href}'><img src='{href}' alt='{esc(rel.stem)}'></a>"
+                            f"<figcaption>{esc(rel.stem.replace('_', ' '))}</figcaption></figure>")
+            else:
+                size = full.stat().st_size if full.is_file() else sum(f.stat().st_size for f in full.rglob("*")
+                                                                         if f.is_file())
+                files.append(f"<li><a href='{href}'>{href}</a> ({size / 1024:.1f} KiB)</li>")
+        if figs:
+            ht.append("<div class='figs'>" + "".join(figs) + "</div>")
+        if files:
+            ht.append("<ul>" + "".join(files) + "</ul>")
+    ht.append("</body></html>")
+    return write_text("\n".join(ht) + "\n", folder / "index.html")

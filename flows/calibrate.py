@@ -1,13 +1,15 @@
 """The ``calibrate`` flow: airflow matching, then Wiebe combustion identification, on bench data.
 
-    bench --validate--> airflow matching (global intake parameters, least squares on Ga_REL)
+    bench --validate--> airflow matching (global intake/exhaust parameters, least squares on Ga_REL)
           --> identification sweep (BDUR10-90 x m at every bench point, airflow-matched spec)
-          --> most probable (BDUR10-90, m) per point, eta_trans sensitivity, joint fit, report
+          --> most probable (BDUR10-90, m) per point, eta_trans sensitivity + eq-6 relation,
+              joint fit of a shared eta_trans, report
 
 Every simulation runs as a sweep on Dask (``flows.evaluate.SweepEvaluator``),
 into ``<out>/sweeps/``; a re-run into the same folder reads finished batches
 back.  Outputs in ``<out>/``: ``airflow_match.parquet``,
-``combustion_params.parquet``, figures and ``calibration.md`` / ``.html``.
+``combustion_params.parquet``, ``eta_sensitivity.parquet``,
+``eta_relation.parquet``, ``summary.json``, figures and ``calibration.md`` / ``.html``.
 """
 
 from __future__ import annotations
@@ -15,6 +17,7 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -31,55 +34,114 @@ from engine_model.bench import load_bench  # noqa: E402
 from engine_model.io import write_json, write_parquet  # noqa: E402
 from engine_model.report import write_report  # noqa: E402
 
+AIRFLOW_COLUMNS = ["point_id", "speed_rpm", "air_mass_flow_kg_h_meas", "air_mass_flow_kg_h_sim", "ga_rel_pct"]
 
-def calibrate_into(out: Path, meas: pd.DataFrame, eng, spec: str | None, address: str, eta_trans: float,
-                   step_deg: float, progress: bool) -> dict:
-    """The calibration steps into folder ``out`` on the Dask scheduler ``address``; returns a summary dict."""
+
+@dataclass(frozen=True)
+class CalibrationSettings:
+    """Knobs of one calibration run (defaults: the full run on Table 2).
+
+    eta_trans [-]; step_deg [deg] crank step of every simulation; airflow_grid: coarse-search
+    points per airflow parameter; airflow_starts / airflow_max_nfev: local least-squares runs and
+    their iteration cap; n_bdur x n_m: identification grid (>= 7 x 7 for the response surface);
+    surface: 'spline' (full) or 'cubic' (cheap, coarse grid).
+    """
+
+    eta_trans: float = 0.95
+    step_deg: float = 0.5
+    airflow_grid: tuple = (6, 6, 1)
+    airflow_starts: int = 2
+    airflow_max_nfev: int = 15
+    n_bdur: int = 11
+    n_m: int = 13
+    surface: str = "spline"
+
+
+def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
+                   settings: CalibrationSettings = CalibrationSettings(), progress: bool = True) -> dict:
+    """The calibration steps into folder ``out`` on the Dask scheduler ``address``; returns a summary dict.
+
+    Parameters
+    ----------
+    out : path
+        Output folder (created).
+    meas : DataFrame
+        Validated bench data (:func:`engine_model.bench.load_bench`).
+    eng : EngineSpec
+        The spec loaded from ``spec`` (used for hashing and defaults).
+    spec : str or None
+        Engine spec TOML path handed to the sweep workers (None: embedded default).
+    address : str
+        Dask scheduler address (e.g. from :func:`flows.evaluate.shared_cluster`).
+    settings : CalibrationSettings
+    progress : bool
+        Progress bars per sweep batch.
+    """
+    out = Path(out)
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     figs = out / "figures"
     figs.mkdir(exist_ok=True)
+    s = settings
 
     def evaluator(label):
-        return SweepEvaluator(out / "sweeps", address, spec=spec, step_deg=step_deg, label=label,
+        return SweepEvaluator(out / "sweeps", address, spec=spec, step_deg=s.step_deg, label=label,
                               progress=progress)
 
     ev_air = evaluator("airflow")
-    match = cal.match_airflow(meas, ev_air, spec=eng)
-    write_parquet(match.table, out / "airflow_match.parquet")
+    match = cal.match_airflow(meas, ev_air, spec=eng, grid=s.airflow_grid, starts=s.airflow_starts,
+                              max_nfev=s.airflow_max_nfev)
+    air_tab = match.table
+    write_parquet(air_tab[AIRFLOW_COLUMNS + [c for c in air_tab.columns if c not in AIRFLOW_COLUMNS]],
+                  out / "airflow_match.parquet")
+    write_parquet(match.grid, out / "airflow_grid.parquet")
     cal.plot_airflow_match(match, figs / "ga_rel_vs_speed.png")
     t_air = time.perf_counter() - t0
 
     ev_id = evaluator("identification")
-    plan = cal.identification_plan(meas, overrides=match.spec_overrides())
-    results = ev_id(plan)
-    ident = cal.identify(meas, results, eta_trans=eta_trans)
+    plan = cal.identification_plan(meas, overrides=match.spec_overrides(), n_bdur=s.n_bdur, n_m=s.n_m)
+    results = ev_id(plan) if len(plan) else pd.DataFrame()
+    ident = cal.identify(meas, results, eta_trans=s.eta_trans, surface=s.surface)
     params = ident.table
     write_parquet(params, out / "combustion_params.parquet")
-    for pid in params["point_id"]:
-        cal.plot_identification(ident, results, pid, figs / f"plane_{pid}.png")
-    eta = cal.eta_sensitivity(meas, results)
-    relation = cal.fit_eta_relation(eta)
+    planes = [cal.plot_identification(ident, pid, figs / f"plane_{pid}.png") for pid in ident.surfaces]
+    eta = cal.eta_sensitivity(ident)
+    iso = cal.power_isolines(ident)
+    relation = cal.fit_eta_relation(iso)
     write_parquet(eta, out / "eta_sensitivity.parquet")
-    cal.plot_eta_relation(eta, relation, figs / "eta_relation.png")
-    joint = cal.joint_fit(meas, results)
+    write_parquet(relation, out / "eta_relation.parquet")
+    cal.plot_eta_relation(eta, iso, relation, figs / "eta_relation.png")
+    joint = cal.joint_fit(ident)
+    t_id = time.perf_counter() - t0 - t_air
+    rel_text = {r["point_id"]: cal.relation_text(r) for _, r in relation.iterrows() if r.get("status") == "ok"}
     summary = {
-        "airflow": {"parameters": match.values, "ci95": match.ci95, "rms_ga_rel_pct": match.rms_ga_rel_pct,
-                    "max_abs_ga_rel_pct": match.max_abs_ga_rel_pct, "simulations": ev_air.points,
-                    "seconds": round(t_air, 1)},
-        "identification": {"points": len(params), "simulations": ev_id.points,
-                           "seconds": round(time.perf_counter() - t0 - t_air, 1)},
-        "eta_relation": relation.coefficients if hasattr(relation, "coefficients") else relation,
-        "joint_fit": joint.summary() if hasattr(joint, "summary") else str(joint),
-        "eta_trans": eta_trans, "wall_s": round(time.perf_counter() - t0, 1),
+        "airflow": {"parameters": match.values, "ci95_assumed_noise": match.ci95,
+                    "ci95_residual_variance": match.ci95_residual, "correlation": match.correlation,
+                    "rms_ga_rel_pct": round(match.rms_ga_rel_pct, 3),
+                    "max_abs_ga_rel_pct": round(match.max_abs_ga_rel_pct, 3),
+                    "misses_1pct": {r.point_id: round(r.ga_rel_pct, 2) for r in match.misses().itertuples()},
+                    "simulations": ev_air.points, "seconds": round(t_air, 1)},
+        "identification": {"points": len(params), "fit_ok": int(params["fit_ok"].sum()),
+                           "grid": [s.n_bdur, s.n_m], "surface": s.surface,
+                           "simulations": ev_id.points, "seconds": round(t_id, 1)},
+        "eta_relation": rel_text,
+        "joint_fit": joint.summary(),
+        "eta_trans": s.eta_trans, "step_deg": s.step_deg, "wall_s": round(time.perf_counter() - t0, 1),
     }
+    show = ["point_id", "speed_rpm", "spark_deg_btdc", "bdur_10_90_deg", "bdur_10_90_deg_lo", "bdur_10_90_deg_hi",
+            "wiebe_m", "wiebe_m_lo", "wiebe_m_hi", "ca50_deg_atdc", "brake_power_kw_meas", "brake_power_kw_sim",
+            "brake_power_err_pct", "pmax_bar", "mirror_wiebe_m", "mirror_rejected_by", "status"]
     sections = [
-        ("Airflow matching", [match.summary(), match.table, figs / "ga_rel_vs_speed.png",
-                              pd.DataFrame(match.correlation)]),
-        ("Combustion identification", [ident.summary() if hasattr(ident, "summary") else "", params]
-         + [figs / f"plane_{pid}.png" for pid in params["point_id"]]),
-        ("Transmission efficiency", [eta, str(summary["eta_relation"]), figs / "eta_relation.png",
-                                     str(summary["joint_fit"])]),
+        ("Airflow matching", [match.summary(), air_tab, figs / "ga_rel_vs_speed.png",
+                              "Parameter correlation matrix (rows/columns in the order " + ", ".join(match.names) + "):",
+                              pd.DataFrame(match.correlation, columns=list(match.names))]),
+        ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
+        ("Transmission efficiency", [
+            "Identified parameters versus the assumed eta_trans (post-processing: eta only scales the target):",
+            eta[["point_id", "eta_trans", "bdur_10_90_deg", "wiebe_m", "ca50_deg_atdc", "brake_power_err_pct",
+                 "status"]],
+            "Fitted relation BDUR10-90 = f(m, eta_trans) on the measured-power isoline (paper eq 6 form):",
+            relation, figs / "eta_relation.png", joint.summary(), joint.table]),
     ]
     write_report(out, "calibration", "Calibration on bench data", sections)
     write_json({"kind": "calibration", "package_version": __version__, "spec_hash": eng.spec_hash(),
@@ -90,19 +152,23 @@ def calibrate_into(out: Path, meas: pd.DataFrame, eng, spec: str | None, address
 @flow(name="calibrate", log_prints=False, validate_parameters=False)
 def calibrate_flow(out: str, bench: str | None = None, spec: str | None = None, eta_trans: float = 0.95,
                    step_deg: float = 0.5, workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
+                   n_bdur: int = 11, n_m: int = 13, airflow_grid: tuple = (6, 6, 1), airflow_max_nfev: int = 15,
                    progress: bool = True) -> dict:
     """Airflow matching and combustion identification of ``bench`` (packaged Table 2 by default) into ``out``."""
     eng = load_spec(spec)
     meas = load_bench(bench)
+    settings = CalibrationSettings(eta_trans=eta_trans, step_deg=step_deg, airflow_grid=tuple(airflow_grid),
+                                   airflow_max_nfev=airflow_max_nfev, n_bdur=n_bdur, n_m=n_m)
     with shared_cluster(workers, dask_address) as addr:
-        return calibrate_into(Path(out), meas, eng, spec, addr, eta_trans, step_deg, progress)
+        return calibrate_into(Path(out), meas, eng, spec, addr, settings, progress)
 
 
 def run_calibration(out, bench=None, spec=None, **kwargs) -> dict:
     """``mbc calibrate``: validate inputs, then run :func:`calibrate_flow` under one Prefect API."""
     load_spec(spec)
     load_bench(bench)
+    cal.grid_axes(kwargs.get("n_bdur", 11), kwargs.get("n_m", 13))   # bad grid sizes fail before any work
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = calibrate_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
-    print(json.dumps(res, indent=1, default=str)[:3000])
+    print(json.dumps(res, indent=1, default=str)[:4000])
     return res

@@ -6,6 +6,7 @@
     mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
+    mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
 
 It lives in ``flows`` because it drives Prefect and Dask; ``engine_model``
 stays free of both.
@@ -95,6 +96,16 @@ def cmd_maps(args) -> int:
     return 0
 
 
+def cmd_calibrate(args) -> int:
+    from .calibrate import run_calibration
+
+    grid = tuple(int(v) for v in args.airflow_grid.split("x"))
+    run_calibration(out=args.out, bench=args.bench, spec=args.spec, eta_trans=args.eta_trans,
+                    step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address,
+                    n_bdur=args.n_bdur, n_m=args.n_m, airflow_grid=grid, airflow_max_nfev=args.airflow_max_nfev)
+    return 0
+
+
 def cmd_plan(args) -> int:
     from .plan import plan_from_args
 
@@ -162,6 +173,19 @@ def build_parser() -> argparse.ArgumentParser:
     common(mp)
     dask(mp)
     mp.set_defaults(func=cmd_maps)
+
+    c = sub.add_parser("calibrate", help="airflow matching + Wiebe identification on bench data")
+    c.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
+    c.add_argument("--out", required=True, help="output folder")
+    c.add_argument("--eta-trans", type=float, default=0.95, help="transmission efficiency [-] (default 0.95)")
+    c.add_argument("--n-bdur", type=int, default=11, help="BDUR10-90 grid points over 20-50 deg (default 11)")
+    c.add_argument("--n-m", type=int, default=13, help="Wiebe m grid points over 2-8 (default 13)")
+    c.add_argument("--airflow-grid", default="6x6x1",
+                   help="coarse airflow search per parameter (exhaust x intake runner x restrictor Cd; default 6x6x1)")
+    c.add_argument("--airflow-max-nfev", type=int, default=15, help="least-squares iteration cap (default 15)")
+    common(c)
+    dask(c)
+    c.set_defaults(func=cmd_calibrate)
 
     from .plan import add_plan_arguments
 

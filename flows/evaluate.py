@@ -51,10 +51,16 @@ class SweepEvaluator:
         Folder prefix of the batches.
     progress : bool
         Progress bar per batch.
+    overrides : dict, optional
+        Spec values ``{"<section>.<field>": value}`` applied to every row (as
+        ``spec.<section>.<field>`` plan columns, see :func:`engine_model.simulate`),
+        e.g. the airflow-matched parameters of a calibration; columns a plan
+        already has win.
     """
 
     def __init__(self, root, address: str, spec: str | None = None, step_deg: float = 0.5,
-                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True):
+                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True,
+                 overrides: dict | None = None):
         self.root = Path(root)
         self.address = address
         self.spec = spec
@@ -62,6 +68,7 @@ class SweepEvaluator:
         self.tolerance = tolerance
         self.label = label
         self.progress = progress
+        self.overrides = dict(overrides or {})
         self.calls = 0
         self.points = 0
 
@@ -70,6 +77,10 @@ class SweepEvaluator:
         self.calls += 1
         self.points += len(plan)
         plan = plan.reset_index(drop=True)
+        for key, val in self.overrides.items():
+            col = key if key.startswith("spec.") else f"spec.{key}"
+            if col not in plan.columns:
+                plan[col] = val
         if "point_id" not in plan.columns:
             plan = plan.assign(point_id=[f"q{i:06d}" for i in range(len(plan))])
         src = write_parquet(plan, out / "plan_input.parquet")

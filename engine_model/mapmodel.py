@@ -1,0 +1,349 @@
+"""Global map-wide combustion model: (BDUR10-90, m) = f(load, speed, spark, lambda).
+
+The paper ends where this starts: "by applying the method on a set of points
+predefined by a DOE plan, form an overall model relating load, speed and spark
+advance to combustion parameters over the whole map" [P].  :class:`MapModel`
+takes the combustion parameters identified at DOE points and fits each output
+with several model families (:mod:`engine_model.surrogates`: a polynomial
+response surface with PRESS term selection, a Gaussian process), chooses the
+family per output by K-fold cross-validation, and predicts with uncertainty.
+
+Its ``predict(points)`` has the same protocol as the truth engine's
+:meth:`engine_model.burnlaw.BurnLaw.predict`, so either can drive the
+table-building code.
+
+Inputs are coded to -1..1 over the training range.  By default spark enters as
+its offset from the MBT prior :func:`engine_model.doe.spark_estimate` (the
+plans sweep spark *around* MBT, which moves 35 deg over the map; the offset
+makes the factor space nearly rectangular and the response smoother).
+Factors constant in the training data are left out of the fit and recorded;
+a prediction at another value is flagged as extrapolation.
+
+A saved model (JSON) carries the engine spec hash; :meth:`MapModel.load` with
+a spec, or :meth:`MapModel.check_spec`, refuses a model fitted for another
+engine.
+
+References
+----------
+.. [P] Mrda et al., MVM2012-024, conclusions.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from . import io as _io
+from ._blas import single_thread_blas
+from .burnlaw import INPUT_COLUMNS, OUTPUT_COLUMNS, check_points
+from .surrogates import FAMILIES, make_family
+
+__all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT"]
+
+#: ``kind`` tag and version of the saved JSON.
+FORMAT = {"kind": "mbc_map_model", "version": 1}
+
+_SPARK_REFS = ("estimate", "absolute")
+
+
+def kfold_indices(n: int, k: int, seed: int) -> list[np.ndarray]:
+    """Test-index arrays of a seeded, shuffled K-fold split of ``n`` rows (k <= n)."""
+    perm = np.random.default_rng(seed).permutation(n)
+    return [np.sort(f) for f in np.array_split(perm, k)]
+
+
+def _spec_hash(spec) -> str | None:
+    if spec is None:
+        return None
+    if isinstance(spec, str):
+        return spec
+    return spec.spec_hash()
+
+
+class MapModel:
+    """Global model of BDUR10-90 and Wiebe m over the operating map.
+
+    Parameters
+    ----------
+    families : sequence of str
+        Candidate families per output (``'poly'``, ``'gp'``).
+    factors : sequence of str
+        Input factors, a subset of ``throttle_pct, speed_rpm, spark_deg_btdc,
+        lambda``.
+    outputs : sequence of str
+        Outputs to model (default ``bdur_10_90_deg, wiebe_m``).
+    spark_reference : {'estimate', 'absolute'}
+        Spark enters as ``spark - spark_estimate(speed, throttle)`` [deg] or
+        as is.
+    k_folds : int
+        Folds of the cross-validation that chooses the family (>= 2; reduced
+        to n if fewer points).
+    seed : int
+        Seed of the fold split and of the GP restarts.
+    extrapolation : {'clamp', 'extend'}
+        Outside the training box: 'clamp' evaluates the model at the nearest
+        point of the box (a flat continuation: a cubic surface cannot run away
+        when the table builder searches spark beyond the planned range);
+        'extend' evaluates the surface as it is.  Either way the row is flagged.
+
+    Attributes (after ``fit``)
+    ----------
+    chosen_ : dict output -> family
+    cv_rmse_ : dict output -> {family: K-fold CV RMSE [output unit]}
+    models_ : dict output -> fitted estimator
+    ranges_ : dict factor -> (low, high) in model coordinates (spark as offset)
+    fixed_factors_ : dict factor -> value, factors constant in the data
+    n_points_ : int, rows used; excluded_ : list of point ids (or row numbers)
+        left out because an output was missing (failed identification)
+    spec_hash_ : str or None
+    """
+
+    def __init__(self, *, families=("poly", "gp"), factors=INPUT_COLUMNS, outputs=OUTPUT_COLUMNS,
+                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp"):
+        self.families = tuple(families)
+        self.factors = tuple(factors)
+        self.outputs = tuple(outputs)
+        self.spark_reference = spark_reference
+        self.k_folds = k_folds
+        self.seed = seed
+        self.extrapolation = extrapolation
+
+    # ------------------------------------------------------------------ inputs
+    def _check_settings(self):
+        bad = [f for f in self.families if f not in FAMILIES]
+        if bad or not self.families:
+            raise ValueError(f"MapModel: unknown/empty families {bad or list(self.families)}; "
+                             f"choose from {sorted(FAMILIES)}")
+        bad = [f for f in self.factors if f not in INPUT_COLUMNS]
+        if bad or not self.factors or len(set(self.factors)) != len(self.factors):
+            raise ValueError(f"MapModel: factors {list(self.factors)} must be distinct names from "
+                             f"{list(INPUT_COLUMNS)}")
+        if self.spark_reference not in _SPARK_REFS:
+            raise ValueError(f"MapModel: spark_reference = {self.spark_reference!r}; choose from {_SPARK_REFS}")
+        if not (isinstance(self.k_folds, (int, np.integer)) and self.k_folds >= 2):
+            raise ValueError(f"MapModel: k_folds = {self.k_folds!r} must be an integer >= 2")
+        if not self.outputs:
+            raise ValueError("MapModel: no outputs")
+        if self.extrapolation not in ("clamp", "extend"):
+            raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose 'clamp' or 'extend'")
+
+    def _model_coords(self, points: pd.DataFrame, who: str) -> dict[str, np.ndarray]:
+        x = check_points(points, who)
+        if self.spark_reference == "estimate":
+            from .doe import spark_estimate
+
+            x["spark_deg_btdc"] = x["spark_deg_btdc"] - np.atleast_1d(
+                spark_estimate(x["speed_rpm"], x["throttle_pct"]))
+        return {f: x[f] for f in self.factors}
+
+    def _coded(self, xm: dict[str, np.ndarray]) -> np.ndarray:
+        cols = [2.0 * (xm[f] - lo) / (hi - lo) - 1.0 for f, (lo, hi) in self.ranges_.items()]
+        return np.column_stack(cols) if cols else np.zeros((len(next(iter(xm.values()))), 0))
+
+    # ------------------------------------------------------------------ fit
+    def fit(self, data: pd.DataFrame, spec=None) -> "MapModel":
+        """Fit every output with every family, choose by K-fold CV, refit the winner (see ``_fit``)."""
+        with single_thread_blas():
+            return self._fit(data, spec)
+
+    def _fit(self, data: pd.DataFrame, spec=None) -> "MapModel":
+        """Fit every output with every family, choose by K-fold CV, refit the winner on all rows.
+
+        Parameters
+        ----------
+        data : DataFrame, n rows
+            Factor columns and output columns; optional ``<output>_std``
+            (identification uncertainty, same unit, used as per-point noise by
+            the GP) and ``point_id``.  Rows with a missing output (failed or
+            aborted identification) are left out of that fit and listed in
+            ``excluded_``.
+        spec : EngineSpec or str, optional
+            The engine the data came from (or its hash); stored and checked
+            on load.
+
+        Returns
+        -------
+        self
+        """
+        self._check_settings()
+        missing = [c for c in self.outputs if c not in data.columns]
+        if missing:
+            raise ValueError(f"MapModel.fit: data lack output column(s) {missing}")
+        xm = self._model_coords(data, "MapModel.fit")
+        ys = {o: pd.to_numeric(data[o], errors="coerce").to_numpy(float) for o in self.outputs}
+        ok = np.all([np.isfinite(v) for v in ys.values()], axis=0)
+        ids = data["point_id"].astype(str).to_numpy() if "point_id" in data.columns else np.arange(len(data))
+        self.excluded_ = [str(i) for i in ids[~ok]]
+        n = int(ok.sum())
+        if n < 6:
+            raise ValueError(f"MapModel.fit: only {n} rows with finite outputs (need >= 6); "
+                             f"excluded: {self.excluded_[:10]}")
+        self.ranges_, self.fixed_factors_ = {}, {}
+        for f in self.factors:
+            v = xm[f][ok]
+            lo, hi = float(v.min()), float(v.max())
+            if hi - lo <= 1e-9 * max(1.0, abs(hi)):
+                self.fixed_factors_[f] = lo
+            else:
+                self.ranges_[f] = (lo, hi)
+        if not self.ranges_:
+            raise ValueError("MapModel.fit: every factor is constant in the data; nothing to model")
+        x = self._coded({f: xm[f][ok] for f in self.ranges_})
+        k = min(self.k_folds, n)
+        folds = kfold_indices(n, k, self.seed)
+        self.cv_rmse_, self.chosen_, self.models_ = {}, {}, {}
+        for o in self.outputs:
+            y = ys[o][ok]
+            ystd = None
+            if f"{o}_std" in data.columns:
+                ystd = pd.to_numeric(data[f"{o}_std"], errors="coerce").to_numpy(float)[ok]
+            scores = {}
+            for fam in self.families:
+                err = np.empty(n)
+                for test in folds:
+                    train = np.setdiff1d(np.arange(n), test)
+                    est = make_family(fam, self.seed).fit(x[train], y[train],
+                                                          None if ystd is None else ystd[train])
+                    err[test] = est.predict(x[test])[0] - y[test]
+                scores[fam] = float(math.sqrt(np.mean(err**2)))
+            best = min(scores, key=scores.get)
+            self.cv_rmse_[o] = scores
+            self.chosen_[o] = best
+            self.models_[o] = make_family(best, self.seed).fit(x, y, ystd)
+        self.n_points_ = n
+        self.spec_hash_ = _spec_hash(spec)
+        return self
+
+    # ------------------------------------------------------------------ use
+    def _check_fitted(self):
+        if not hasattr(self, "models_"):
+            raise ValueError("MapModel: not fitted (call fit or MapModel.load)")
+
+    def predict(self, points: pd.DataFrame) -> pd.DataFrame:
+        """Predicted outputs with uncertainty.
+
+        Parameters
+        ----------
+        points : DataFrame, m rows
+            ``throttle_pct`` [%], ``speed_rpm`` [rpm], ``spark_deg_btdc``
+            [deg BTDC], ``lambda`` [-].
+
+        Returns
+        -------
+        DataFrame, m rows, same index
+            Each output (e.g. ``bdur_10_90_deg`` [deg], ``wiebe_m`` [-]), its
+            ``<output>_std`` (1-sigma uncertainty of the model mean) and
+            ``extrapolation`` (True where a factor leaves the training range
+            by more than 1 % of it, or a fixed factor differs).
+        """
+        self._check_fitted()
+        xm = self._model_coords(points, "MapModel.predict")
+        x = self._coded(xm)
+        out = {}
+        xe = np.clip(x, -1.0, 1.0) if self.extrapolation == "clamp" else x
+        for o in self.outputs:
+            with single_thread_blas():
+                mean, std = self.models_[o].predict(xe)
+            out[o], out[f"{o}_std"] = mean, std
+        extra = np.zeros(len(points), dtype=bool)
+        if x.size:
+            extra |= np.any(np.abs(x) > 1.02, axis=1)
+        for f, v in self.fixed_factors_.items():
+            extra |= np.abs(xm[f] - v) > 1e-6 * max(1.0, abs(v))
+        out["extrapolation"] = extra
+        return pd.DataFrame(out, index=points.index)
+
+    def cv_table(self) -> pd.DataFrame:
+        """K-fold CV RMSE per output and family: ``output, family, cv_rmse, chosen``."""
+        self._check_fitted()
+        rows = [{"output": o, "family": f, "cv_rmse": v, "chosen": f == self.chosen_[o]}
+                for o, s in self.cv_rmse_.items() for f, v in s.items()]
+        return pd.DataFrame(rows)
+
+    def check_spec(self, spec) -> None:
+        """ValueError unless the model was fitted for ``spec`` (EngineSpec or hash).
+
+        A model fitted without a spec (``spec_hash_`` None) passes with a warning.
+        """
+        self._check_fitted()
+        want = _spec_hash(spec)
+        if self.spec_hash_ is None:
+            warnings.warn(f"MapModel: the model records no engine spec hash (fitted without spec=); cannot "
+                          f"confirm it belongs to spec {want}", stacklevel=2)
+            return
+        if want != self.spec_hash_:
+            raise ValueError(f"MapModel: model was fitted for engine spec {self.spec_hash_}, not for spec "
+                             f"{want}; refit it on data of this engine")
+
+    # ------------------------------------------------------------------ persistence
+    def to_dict(self) -> dict:
+        self._check_fitted()
+        return {**FORMAT, "families": list(self.families), "factors": list(self.factors),
+                "outputs": list(self.outputs), "spark_reference": self.spark_reference,
+                "k_folds": self.k_folds, "seed": self.seed, "extrapolation": self.extrapolation,
+                "spec_hash": self.spec_hash_,
+                "ranges": [[k, *v] for k, v in self.ranges_.items()],  # a list: JSON sorts keys, order matters
+                "fixed_factors": self.fixed_factors_,
+                "n_points": self.n_points_, "excluded": self.excluded_, "cv_rmse": self.cv_rmse_,
+                "chosen": self.chosen_, "models": {o: m.to_dict() for o, m in self.models_.items()}}
+
+    def save(self, path) -> Path:
+        """Write the fitted model as JSON (atomically)."""
+        return _io.write_json(self.to_dict(), path)
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "<dict>") -> "MapModel":
+        if d.get("kind") != FORMAT["kind"]:
+            raise ValueError(f"{source}: not a map model file (kind = {d.get('kind')!r}, expected "
+                             f"{FORMAT['kind']!r})")
+        if d.get("version") != FORMAT["version"]:
+            raise ValueError(f"{source}: map model format version {d.get('version')!r}; this code reads "
+                             f"{FORMAT['version']}")
+        try:
+            obj = cls(families=d["families"], factors=d["factors"], outputs=d["outputs"],
+                      spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"],
+                      extrapolation=d.get("extrapolation", "clamp"))
+            obj.spec_hash_ = d["spec_hash"]
+            obj.ranges_ = {k: (float(lo), float(hi)) for k, lo, hi in d["ranges"]}
+            obj.fixed_factors_ = {k: float(v) for k, v in d["fixed_factors"].items()}
+            obj.n_points_ = int(d["n_points"])
+            obj.excluded_ = list(d["excluded"])
+            obj.cv_rmse_ = d["cv_rmse"]
+            obj.chosen_ = d["chosen"]
+            obj.models_ = {o: FAMILIES[m["family"]].from_dict(m) for o, m in d["models"].items()}
+        except (KeyError, TypeError) as exc:
+            raise ValueError(f"{source}: map model file is incomplete or malformed ({exc!r})") from None
+        return obj
+
+    @classmethod
+    def load(cls, path, spec=None) -> "MapModel":
+        """Read a saved model; with ``spec``, refuse a model of another engine (ValueError)."""
+        p = Path(path)
+        if not p.is_file():
+            raise ValueError(f"{p}: map model file not found")
+        try:
+            d = json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{p}: not valid JSON ({exc})") from None
+        obj = cls.from_dict(d, str(p))
+        if spec is not None:
+            try:
+                obj.check_spec(spec)
+            except ValueError as exc:
+                raise ValueError(f"{p}: {exc}") from None
+        return obj
+
+
+def fit_map_model(data: pd.DataFrame, spec=None, **settings) -> MapModel:
+    """Function twin: ``MapModel(**settings).fit(data, spec)``."""
+    return MapModel(**settings).fit(data, spec)
+
+
+def load(path, spec=None) -> MapModel:
+    """Function twin of :meth:`MapModel.load` (used by :func:`engine_model.maps.load_model`)."""
+    return MapModel.load(path, spec=spec)
