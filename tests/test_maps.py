@@ -386,3 +386,27 @@ def test_bounded_quadratic_matches_scipy():
     lo, hi = np.full(12, -0.2), np.full(12, 0.3)
     ref = lsq_linear(m, y, bounds=(lo, hi), method="bvls").x
     np.testing.assert_allclose(_bounded_quadratic(m.T @ m, m.T @ y, lo, hi), ref, atol=1e-8)
+
+
+def test_fitted_map_model_file_drives_the_search(tmp_path):
+    """A MapModel fitted on the hidden burn law, saved and loaded by load_model, supplies the per-spark Wiebe values."""
+    from engine_model.burnlaw import BurnLaw
+    from engine_model.mapmodel import MapModel
+
+    spec = default_spec()
+    pts = doe.latin_hypercube(40, bounds={"spark_deg_btdc": (10.0, 60.0), "speed_rpm": (2000.0, 12000.0),
+                                          "throttle_pct": (10.0, 100.0)}, seed=3)
+    truth = BurnLaw().predict(pts)
+    data = pts.assign(bdur_10_90_deg=truth["bdur_10_90_deg"].to_numpy(), wiebe_m=truth["wiebe_m"].to_numpy())
+    path = MapModel(families=("poly",)).fit(data, spec).save(tmp_path / "model.json")
+    model = load_model(path)
+    res = build_maps(spec, model, grid=EcuGrid((50, 100), (4000, 8000, 12000)), evaluate=synthetic_engine,
+                     settings=MapSettings(spark_min_deg_btdc=20.0))
+    ev = res.evaluations
+    pred = model.predict(ev[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]])
+    np.testing.assert_allclose(ev["bdur_10_90_deg"], pred["bdur_10_90_deg"], rtol=1e-12)
+    assert ev.groupby("cell")["bdur_10_90_deg"].nunique().min() > 1       # spark-dependent through the model
+    assert res.model_name == "MapModel" and res.cells["feasible"].sum() >= 4
+    other = spec.with_values({"geometry.compression_ratio": 12.0})
+    with pytest.raises(ValueError, match=r"fitted for engine spec"):
+        build_maps(other, model, grid=GRID, evaluate=synthetic_engine)
