@@ -638,7 +638,9 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     cells["spark_start_deg_btdc"] = np.maximum(cells["spark_deg_btdc"] - st.start_retard_deg, -30.0)
 
     wall = time.perf_counter() - t0
-    d2t, d2n = second_differences(cells["spark_deg_btdc"].to_numpy(float).reshape(shape))
+    d2t, d2n = second_differences(np.where(feas, cells["spark_deg_btdc"].to_numpy(float), np.nan).reshape(shape))
+    d2 = np.concatenate([d2t.ravel(), d2n.ravel()])
+    d2 = d2[np.isfinite(d2)]
     stats = {
         "cells": len(cells), "feasible": int(feas.sum()),
         "infeasible": {str(k): int(v) for k, v in cells.loc[~cells["feasible"], "infeasible_reason"]
@@ -651,8 +653,7 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
         "smoothing": {"lambda": sinfo["lam"], "bound_deg": st.max_second_diff_deg,
                       "bound_met": sinfo["bound_met"], "max_shift_deg": sinfo["max_shift"],
                       "rms_shift_deg": sinfo["rms_shift"],
-                      "max_second_diff_final_deg": float(np.nanmax(np.abs(np.concatenate([d2t.ravel(), d2n.ravel()]))))
-                      if d2t.size + d2n.size else 0.0},
+                      "max_second_diff_feasible_deg": float(np.max(np.abs(d2))) if d2.size else 0.0},
         "torque_loss_pct": {"max": float(np.nanmax(cells["torque_loss_pct"])) if feas.any() else math.nan,
                             "mean": float(np.nanmean(cells["torque_loss_pct"])) if feas.any() else math.nan},
         "injection_fill_cells": int((~have).sum()),
