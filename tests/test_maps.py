@@ -319,3 +319,94 @@ def test_write_maps_contract_round_trip_and_atomic_replace(built, tmp_path, monk
         write_maps(res, out)
     assert sorted(p.name for p in out.iterdir()) == before
     assert sorted(p.name for p in out.parent.iterdir()) == ["maps"]
+
+
+# --------------------------------------------------------------------------- the search on a synthetic engine
+
+VD_M3 = default_spec().geometry.total_displacement_m3
+
+
+def synthetic_engine(plan):
+    """Known answers: torque parabola peaking at s_mbt = 20 + 3 n/1000 [deg]; knock = exp(0.08 (s - s_k)),
+    s_k = 60 + 3 n/1000 - 45 thr/100; peak torque 60 thr/100 - 5 n/10000 [N m]; 10 %, 10000 rpm fails."""
+    s, n, t = (plan[c].to_numpy(float) for c in ("spark_deg_btdc", "speed_rpm", "throttle_pct"))
+    tmax = 60 * t / 100 - 5 * n / 10000
+    torque = tmax - 0.02 * np.abs(tmax) * (s - (20 + 3 * n / 1000)) ** 2 / 10
+    knock = np.exp(0.08 * (s - (60 + 3 * n / 1000 - 45 * t / 100)))
+    fail = (t == 10) & (n == 10000)
+    out = plan.copy()
+    out["brake_torque_nm"] = np.where(fail, np.nan, torque)
+    out["knock_index"] = np.where(fail, np.nan, knock)
+    out["bmep_bar"] = out["brake_torque_nm"] * 4 * np.pi / VD_M3 / 1e5
+    out["air_mass_flow_kg_h"] = np.where(fail, np.nan, 150 * t / 100 * n / 10000)
+    out["status"] = np.where(fail, "failed: synthetic", "ok")
+    return out
+
+
+def test_search_recovers_the_synthetic_engine():
+    st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0)
+    grid = EcuGrid((10, 50, 100), (2000, 6000, 10000))
+    res = build_maps(default_spec(), PriorModel(), grid=grid, evaluate=synthetic_engine, settings=st)
+    c = res.cells.set_index(["throttle_pct", "speed_rpm"])
+    lim = st.knock_limit
+
+    def border(t, n):   # knock = limit
+        return 60 + 3 * n / 1000 - 45 * t / 100 + math.log(lim) / 0.08
+    # zone 1: knocks at the most retarded spark allowed (border 18.97 < 20)
+    assert c.loc[(100, 2000), "infeasible_reason"] == "knock-limited"
+    assert c.loc[(100, 2000), "spark_deg_btdc"] == 20.0
+    # zone 2: peak torque 3 N m = 0.63 bar; failure is flagged, not dropped
+    assert c.loc[(10, 6000), "infeasible_reason"] == "near-zero BMEP"
+    assert c.loc[(10, 10000), "infeasible_reason"] == "evaluation failed"
+    # MBT cells: the parabola's peak (MBT below 20 deg at 2000 rpm is not reachable: 26 deg is the peak there)
+    for t, n in ((50, 2000), (50, 6000), (50, 10000), (10, 2000)):
+        assert c.loc[(t, n), "limited_by"] == "mbt", (t, n)
+        assert c.loc[(t, n), "spark_mbt_deg_btdc"] == pytest.approx(20 + 3 * n / 1000, abs=0.3)
+    # knock-limited cells: the highest knock-safe spark evaluated, within knock_tol below the exact border
+    for t, n in ((100, 6000), (100, 10000)):
+        assert c.loc[(t, n), "limited_by"] == "knock"
+        sp = c.loc[(t, n), "spark_deg_btdc"]
+        assert border(t, n) - st.knock_tol_deg - 0.1 <= sp < border(t, n)
+    assert (res.cells.loc[res.cells["feasible"], "knock_index"] < lim).all()
+    # only the cells that needed it were refined; zone-2 and failed cells stop after the first stage
+    ev = res.evaluations
+    for t, n in ((10, 6000), (10, 10000)):
+        cell = int(c.loc[(t, n), "cell"])
+        assert set(ev.loc[ev["cell"] == cell, "stage"]) == {"s1"}
+    assert res.stats["points_per_cell"] < 14
+
+
+def test_bounded_quadratic_matches_scipy():
+    from scipy.optimize import lsq_linear
+
+    from engine_model.maps_tables import _bounded_quadratic
+    rng = np.random.default_rng(7)
+    m = rng.normal(size=(30, 12))
+    y = rng.normal(size=30)
+    lo, hi = np.full(12, -0.2), np.full(12, 0.3)
+    ref = lsq_linear(m, y, bounds=(lo, hi), method="bvls").x
+    np.testing.assert_allclose(_bounded_quadratic(m.T @ m, m.T @ y, lo, hi), ref, atol=1e-8)
+
+
+def test_fitted_map_model_file_drives_the_search(tmp_path):
+    """A MapModel fitted on the hidden burn law, saved and loaded by load_model, supplies the per-spark Wiebe values."""
+    from engine_model.burnlaw import BurnLaw
+    from engine_model.mapmodel import MapModel
+
+    spec = default_spec()
+    pts = doe.latin_hypercube(40, bounds={"spark_deg_btdc": (10.0, 60.0), "speed_rpm": (2000.0, 12000.0),
+                                          "throttle_pct": (10.0, 100.0)}, seed=3)
+    truth = BurnLaw().predict(pts)
+    data = pts.assign(bdur_10_90_deg=truth["bdur_10_90_deg"].to_numpy(), wiebe_m=truth["wiebe_m"].to_numpy())
+    path = MapModel(families=("poly",)).fit(data, spec).save(tmp_path / "model.json")
+    model = load_model(path)
+    res = build_maps(spec, model, grid=EcuGrid((50, 100), (4000, 8000, 12000)), evaluate=synthetic_engine,
+                     settings=MapSettings(spark_min_deg_btdc=20.0))
+    ev = res.evaluations
+    pred = model.predict(ev[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]])
+    np.testing.assert_allclose(ev["bdur_10_90_deg"], pred["bdur_10_90_deg"], rtol=1e-12)
+    assert ev.groupby("cell")["bdur_10_90_deg"].nunique().min() > 1       # spark-dependent through the model
+    assert res.model_name == "MapModel" and res.cells["feasible"].sum() >= 4
+    other = spec.with_values({"geometry.compression_ratio": 12.0})
+    with pytest.raises(ValueError, match=r"fitted for engine spec"):
+        build_maps(other, model, grid=GRID, evaluate=synthetic_engine)
