@@ -18,27 +18,14 @@ PLAN_COLUMNS = ("point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lamb
 def choose_base(bench: pd.DataFrame) -> BaseModel:
     """Base parameters the bench's design can identify.
 
-    Map-wide data: the full smooth combustion base (:data:`~engine_model.gap.linear.COMBUSTION_BASE`).
-    A load term needs throttle variation (> 1 %), a spark term spark offsets (> 3 deg range against the
-    MBT prior), an m speed slope 12+ points.  With a single load line and only airflow and torque
-    measured (the paper's Table 2) the base is BDUR10-90 offset + speed slope: m and BDUR act alike
-    on torque there, so one of them is all the data can carry.
+    Map-wide data: :data:`~engine_model.gap.linear.COMBUSTION_BASE` (BDUR10-90 offset, speed and load
+    slopes).  A load term needs throttle variation (> 1 %); on a single load line (the paper's Table 2)
+    the base is BDUR10-90 offset + speed slope.
     """
-    from .. import doe
-
-    n = bench["speed_rpm"].to_numpy(float)
     t = bench["throttle_pct"].to_numpy(float)
-    s = bench["spark_deg_btdc"].to_numpy(float)
-    ds = s - np.atleast_1d(doe.spark_estimate(n, t))
     params = ["bdur_offset_deg", "bdur_speed_deg_per_krpm"]
     if np.ptp(t) > 1.0:
         params.append("bdur_load_deg")
-    if np.ptp(ds) > 3.0 and len(bench) >= 12:
-        params.append("bdur_spark_deg_per_10deg")
-    if "exhaust_temp_k" in bench.columns or np.ptp(t) > 1.0:
-        params.append("m_offset")
-        if len(bench) >= 12:
-            params.append("m_speed_per_krpm")
     return BaseModel(params=tuple(p for p in COMBUSTION_BASE if p in params))
 
 
