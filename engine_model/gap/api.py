@@ -31,7 +31,7 @@ def choose_base(bench: pd.DataFrame) -> BaseModel:
 
 def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None, base: BaseModel | None = None,
                    candidates=None, eta_base: float = ETA_TRANS_BASE, base_iterations: int = 3,
-                   k_folds: int = 5, n_noise: int = 200, seed: int = 0,
+                   k_folds: int = 5, n_noise: int = 200, seed: int = 0, overrides: dict | None = None,
                    source: str = "bench") -> tuple[GapDiagnosis, dict]:
     """Calibrate the base model on ``bench``, linearise, and diagnose the gap.
 
@@ -50,6 +50,10 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         Transmission efficiency of the base model (the paper's 0.95).
     base_iterations : int
         Gauss-Newton iterations of the base calibration.
+    overrides : dict {"section.field": value}, optional
+        Spec values fixed by an earlier calibration step (e.g. the airflow match of
+        ``engine_model.calibrate``); they become ``spec.*`` columns of every simulated row and the
+        effects act on top of them.
 
     Returns
     -------
@@ -65,6 +69,10 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
     plan["point_id"] = plan["point_id"].astype(str)
     if "status" in bench.columns:
         plan = plan[bench["status"].astype(str).to_numpy() == "ok"].reset_index(drop=True)
+    for key, val in (overrides or {}).items():
+        k = key[5:] if key.startswith("spec.") else key
+        spec.with_values({k: val})          # ValueError naming the key when unknown or out of range
+        plan[f"spec.{k}"] = float(val)
     base = choose_base(plan) if base is None else base
     outs = [c for c in ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k") if c in bench.columns
             and np.isfinite(pd.to_numeric(bench[c], errors="coerce")).any()]
@@ -72,6 +80,6 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
                                     eta_base=eta_base, outputs=outs)
     lin = linearise(plan, evaluate, base, effects=candidates, theta=theta, spec=spec, eta_base=eta_base)
     d = diagnose(lin, bench, candidates=candidates, k_folds=k_folds, n_noise=n_noise, seed=seed, source=source)
-    info = {"theta": theta, "history": hist, "base": list(base.params),
+    info = {"theta": theta, "history": hist, "base": list(base.params), "overrides": dict(overrides or {}),
             "simulations": int(lin.n_simulations + sum(h["simulations"] for h in hist))}
     return d, info

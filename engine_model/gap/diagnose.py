@@ -678,8 +678,17 @@ def _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, 
                          f"{gap_before:.2f} -> {gap_after:.2f} sigma rms, but {why}.")
     if where:
         parts.append(f"Where: {where}.")
+    ch = chain[chain["stage"] != "brake at dyno (total)"].dropna(subset=["mean_pct"])
+    if len(ch):
+        se = ch["se_pct"].fillna(np.inf).replace(0, np.inf)
+        tval = (ch["mean_pct"].abs() / se).to_numpy()
+        sig_rows = ch[tval > 2.0]
+        if len(sig_rows):
+            parts.append("Energy chain (share of the torque gap, mean +- s.e.): " + "; ".join(
+                f"{r.stage} {r.mean_pct:+.1f} +- {r.se_pct:.1f} %" for r in sig_rows.itertuples()) + ".")
     if len(stages):
         st = stages.iloc[0]
         if st["beats_noise"]:
-            parts.append(f"Along the energy chain the library localises it at '{st['stage']}'.")
+            parts.append(f"Among the library's stages the largest held-out improvement comes from "
+                         f"'{st['stage']}' effects.")
     return " ".join(parts)
