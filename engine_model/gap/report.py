@@ -174,7 +174,7 @@ def write_benchmark_report(result: dict, out) -> dict:
     folder = (Path(out) / "gap").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     table = result["table"]
-    paths = {"csv": write_csv(table[list(BENCHMARK_COLUMNS)], folder / "gap_benchmark.csv", index=False),
+    paths = {"csv": write_csv(table[list(BENCHMARK_COLUMNS)], folder / "gap_benchmark.csv"),
              "details": write_parquet(table, folder / "gap_benchmark_details.parquet"),
              "summary": write_parquet(result["summary"], folder / "gap_benchmark_summary.parquet")}
     if len(result.get("verification", [])):
