@@ -142,8 +142,17 @@ def cmd_serve(args) -> int:
 def cmd_gap(args) -> int:
     from .gap import run_gap
 
+    overrides = {}
+    for item in args.override or []:
+        key, sep, val = item.partition("=")
+        try:
+            overrides[key.strip()] = float(val)
+        except ValueError:
+            raise ValueError(f"--override {item!r}: expected SECTION.FIELD=NUMBER, e.g. intake.restrictor_cd=0.9") from None
+        if not sep:
+            raise ValueError(f"--override {item!r}: expected SECTION.FIELD=NUMBER")
     run_gap(out=args.out, bench=args.bench, spec=args.spec, step_deg=args.step_deg, workers=args.workers,
-            dask_address=args.dask_address)
+            dask_address=args.dask_address, overrides=overrides or None)
     return 0
 
 
@@ -245,6 +254,8 @@ def build_parser() -> argparse.ArgumentParser:
     gp = sub.add_parser("gap", help="sim-to-real gap diagnosis of bench data into <out>/gap/")
     gp.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
     gp.add_argument("--out", required=True, help="output folder (report under <out>/gap/)")
+    gp.add_argument("--override", action="append", metavar="SECTION.FIELD=VALUE",
+                    help="spec value from an earlier calibration step, e.g. intake.restrictor_cd=0.85 (repeatable)")
     common(gp)
     dask(gp)
     gp.set_defaults(func=cmd_gap)

@@ -43,7 +43,7 @@ def _read_bench(bench: str | None):
 
 
 def gap_into(out: Path, bench_df, source: str, spec_path: str | None, address: str, step_deg: float,
-             progress: bool, n_noise: int = 200) -> dict:
+             progress: bool, n_noise: int = 200, overrides: dict | None = None) -> dict:
     """The diagnosis into ``out`` on the Dask scheduler ``address``; returns a summary dict."""
     from engine_model.gap.api import diagnose_bench
     from engine_model.gap.report import write_gap_report
@@ -52,15 +52,16 @@ def gap_into(out: Path, bench_df, source: str, spec_path: str | None, address: s
     out.mkdir(parents=True, exist_ok=True)
     spec = load_spec(spec_path)
     ev = SweepEvaluator(out / "sweeps", address, spec=spec_path, step_deg=step_deg, label="gap", progress=progress)
-    d, info = diagnose_bench(bench_df, ev, spec=spec, n_noise=n_noise, source=source)
-    notes = [f"Bench: {source}. Base calibration parameters: {info['theta']} (base: {info['base']}). "
+    d, info = diagnose_bench(bench_df, ev, spec=spec, n_noise=n_noise, source=source, overrides=overrides)
+    notes = [f"Bench: {source}. Spec overrides (earlier calibration): {info['overrides'] or 'none'}. "
+             f"Base calibration parameters: {info['theta']} (base: {info['base']}). "
              f"{ev.points} simulations in {ev.calls} sweep batches."]
     paths = write_gap_report(d, out, notes=notes)
     summary = {"kind": "gap", "package_version": __version__, "spec_hash": spec.spec_hash(), "bench": source,
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "named": d.named, "best": d.best,
                "confidence": d.confidence, "statement": d.statement, "gap_before_sigma": d.gap_before,
                "gap_after_sigma": d.gap_after, "gap_reduction_pct": d.gap_reduction_pct,
-               "base_theta": info["theta"], "simulations": ev.points, "wall_s": round(time.perf_counter() - t0, 1),
+               "base_theta": info["theta"], "overrides": info["overrides"], "simulations": ev.points, "wall_s": round(time.perf_counter() - t0, 1),
                "report": str(paths["markdown"])}
     write_json(summary, out / "gap" / "run.json")
     return summary
@@ -69,11 +70,15 @@ def gap_into(out: Path, bench_df, source: str, spec_path: str | None, address: s
 @flow(name="gap", log_prints=False, validate_parameters=False)
 def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_deg: float = 0.5,
              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
-             n_noise: int = 200) -> dict:
-    """Gap diagnosis of ``bench`` (packaged Table 2 by default) into ``<out>/gap/``."""
+             n_noise: int = 200, overrides: dict | None = None) -> dict:
+    """Gap diagnosis of ``bench`` (packaged Table 2 by default) into ``<out>/gap/``.
+
+    ``overrides`` ({"section.field": value}) fixes spec values from an earlier calibration step
+    (e.g. the airflow match) for every simulation.
+    """
     df, source = _read_bench(bench)
     with shared_cluster(workers, dask_address) as addr:
-        return gap_into(Path(out), df, source, spec, addr, step_deg, progress, n_noise)
+        return gap_into(Path(out), df, source, spec, addr, step_deg, progress, n_noise, overrides)
 
 
 @flow(name="gap-benchmark", log_prints=False, validate_parameters=False)
@@ -103,8 +108,10 @@ def small_settings() -> dict:
 
 def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
     """``mbc gap``: validate inputs, then run :func:`gap_flow` under one Prefect API."""
-    load_spec(spec)
+    eng = load_spec(spec)
     _read_bench(bench)
+    if kwargs.get("overrides"):
+        eng.with_values(kwargs["overrides"])
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = gap_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
     print(res["statement"])

@@ -18,33 +18,20 @@ PLAN_COLUMNS = ("point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lamb
 def choose_base(bench: pd.DataFrame) -> BaseModel:
     """Base parameters the bench's design can identify.
 
-    Map-wide data: the full smooth combustion base (:data:`~engine_model.gap.linear.COMBUSTION_BASE`).
-    A load term needs throttle variation (> 1 %), a spark term spark offsets (> 3 deg range against the
-    MBT prior), an m speed slope 12+ points.  With a single load line and only airflow and torque
-    measured (the paper's Table 2) the base is BDUR10-90 offset + speed slope: m and BDUR act alike
-    on torque there, so one of them is all the data can carry.
+    Map-wide data: :data:`~engine_model.gap.linear.COMBUSTION_BASE` (BDUR10-90 offset, speed and load
+    slopes).  A load term needs throttle variation (> 1 %); on a single load line (the paper's Table 2)
+    the base is BDUR10-90 offset + speed slope.
     """
-    from .. import doe
-
-    n = bench["speed_rpm"].to_numpy(float)
     t = bench["throttle_pct"].to_numpy(float)
-    s = bench["spark_deg_btdc"].to_numpy(float)
-    ds = s - np.atleast_1d(doe.spark_estimate(n, t))
     params = ["bdur_offset_deg", "bdur_speed_deg_per_krpm"]
     if np.ptp(t) > 1.0:
         params.append("bdur_load_deg")
-    if np.ptp(ds) > 3.0 and len(bench) >= 12:
-        params.append("bdur_spark_deg_per_10deg")
-    if "exhaust_temp_k" in bench.columns or np.ptp(t) > 1.0:
-        params.append("m_offset")
-        if len(bench) >= 12:
-            params.append("m_speed_per_krpm")
     return BaseModel(params=tuple(p for p in COMBUSTION_BASE if p in params))
 
 
 def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None, base: BaseModel | None = None,
                    candidates=None, eta_base: float = ETA_TRANS_BASE, base_iterations: int = 3,
-                   k_folds: int = 5, n_noise: int = 200, seed: int = 0,
+                   k_folds: int = 5, n_noise: int = 200, seed: int = 0, overrides: dict | None = None,
                    source: str = "bench") -> tuple[GapDiagnosis, dict]:
     """Calibrate the base model on ``bench``, linearise, and diagnose the gap.
 
@@ -63,6 +50,10 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         Transmission efficiency of the base model (the paper's 0.95).
     base_iterations : int
         Gauss-Newton iterations of the base calibration.
+    overrides : dict {"section.field": value}, optional
+        Spec values fixed by an earlier calibration step (e.g. the airflow match of
+        ``engine_model.calibrate``); they become ``spec.*`` columns of every simulated row and the
+        effects act on top of them.
 
     Returns
     -------
@@ -78,6 +69,10 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
     plan["point_id"] = plan["point_id"].astype(str)
     if "status" in bench.columns:
         plan = plan[bench["status"].astype(str).to_numpy() == "ok"].reset_index(drop=True)
+    for key, val in (overrides or {}).items():
+        k = key[5:] if key.startswith("spec.") else key
+        spec.with_values({k: val})          # ValueError naming the key when unknown or out of range
+        plan[f"spec.{k}"] = float(val)
     base = choose_base(plan) if base is None else base
     outs = [c for c in ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k") if c in bench.columns
             and np.isfinite(pd.to_numeric(bench[c], errors="coerce")).any()]
@@ -85,6 +80,6 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
                                     eta_base=eta_base, outputs=outs)
     lin = linearise(plan, evaluate, base, effects=candidates, theta=theta, spec=spec, eta_base=eta_base)
     d = diagnose(lin, bench, candidates=candidates, k_folds=k_folds, n_noise=n_noise, seed=seed, source=source)
-    info = {"theta": theta, "history": hist, "base": list(base.params),
+    info = {"theta": theta, "history": hist, "base": list(base.params), "overrides": dict(overrides or {}),
             "simulations": int(lin.n_simulations + sum(h["simulations"] for h in hist))}
     return d, info

@@ -127,7 +127,7 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
     (candidate ranking), ``residuals.parquet``, ``shape.parquet``, ``chain.parquet``, ``field.parquet``,
     ``gap.md`` / ``gap.html`` and ``gap_summary.json``.
     """
-    folder = Path(out) / "gap"
+    folder = (Path(out) / "gap").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     figs = {"residual_map": plot_residual_map(d, folder / "residual_map.png"),
             "energy_chain": plot_chain(d, folder / "energy_chain.png"),
@@ -171,10 +171,10 @@ def write_benchmark_report(result: dict, out) -> dict:
     from ..io import write_csv
     from .benchmark import BENCHMARK_COLUMNS
 
-    folder = Path(out) / "gap"
+    folder = (Path(out) / "gap").resolve()
     folder.mkdir(parents=True, exist_ok=True)
     table = result["table"]
-    paths = {"csv": write_csv(table[list(BENCHMARK_COLUMNS)], folder / "gap_benchmark.csv", index=False),
+    paths = {"csv": write_csv(table[list(BENCHMARK_COLUMNS)], folder / "gap_benchmark.csv"),
              "details": write_parquet(table, folder / "gap_benchmark_details.parquet"),
              "summary": write_parquet(result["summary"], folder / "gap_benchmark_summary.parquet")}
     if len(result.get("verification", [])):

@@ -1,0 +1,20 @@
+"""`mbc gap` input errors are clear and happen before any simulation or Prefect server starts."""
+
+import pandas as pd
+
+from flows.cli import main
+
+
+def test_gap_bench_missing_outputs(tmp_path, capsys):
+    bad = tmp_path / "bench.csv"
+    pd.DataFrame({"point_id": ["a"], "speed_rpm": [9000], "throttle_pct": [100], "spark_deg_btdc": [50],
+                  "lambda": [0.9], "brake_torque_nm": [44.0]}).to_csv(bad, index=False)
+    assert main(["gap", "--bench", str(bad), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "bench.csv" in err and "air_mass_flow_kg_h" in err and "missing" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_gap_bench_file_not_found(tmp_path, capsys):
+    assert main(["gap", "--bench", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "o")]) == 2
+    assert "bench file not found" in capsys.readouterr().err
