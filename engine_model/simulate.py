@@ -203,9 +203,9 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     spec : EngineSpec
     op : OperatingPoint
     solver : SolverSettings
-    state : tuple of (vol, mr) arrays, optional
+    state : tuple of (vol, mr[, ref]) arrays, optional
         Gas-exchange state to start from (e.g. the converged state of a
-        neighbouring point); a cold-start estimate otherwise.
+        neighbouring point, as returned here); a cold-start estimate otherwise.
     return_traces : bool
         Also return the last cycle's traces (see ``run_engine``).
     gas : GasSet, optional
@@ -217,18 +217,22 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     dict
         Result columns of the contract (``RESULT_COLUMNS``).
     tuple
-        The final (vol, mr) state, reusable as ``state`` of a similar point.
+        The final (vol, mr, ref) state, reusable as ``state`` of a similar point.
     ndarray, optional
         Traces, shape (2*ncyl + 5, nstep), if requested.
     """
     ki = kernel_inputs(spec, op, solver, gas)
+    ref = np.zeros((ki.ncyl, 5))          # unknown: the kernel starts from defaults
     if state is None:
         vol, mr = initial_state(spec, ki)
     else:
         vol, mr = state[0].copy(), state[1].copy()
+        if len(state) > 2:
+            ref = state[2].copy()
     out = np.zeros(L.NOUT)
     trace = np.zeros((2 * ki.ncyl + 5, ki.nstep))
-    _engine.run_engine(ki.par, ki.tab, ki.offs, ki.coeffs, ki.rsp, ki.fuel_c, vol, mr, ki.vfix, out, trace)
+    hist = np.zeros((0, L.H_N0 + vol.shape[0] * (L.NVCOL - 1) + mr.shape[0]))
+    _engine.run_engine(ki.par, ki.tab, ki.offs, ki.coeffs, ki.rsp, ki.fuel_c, vol, mr, ref, ki.vfix, out, trace, hist)
     if op.motored:
         burn = {"ca10_deg_atdc": math.nan, "ca50_deg_atdc": math.nan, "ca90_deg_atdc": math.nan}
     else:
@@ -237,8 +241,8 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     row["fuel_burned_mg_per_cycle"] = out[L.O_FUEL_BURNED] * 1e6
     row["gross_work_j_per_cycle"] = out[L.O_WGROSS]
     if return_traces:
-        return row, (vol, mr), trace
-    return row, (vol, mr)
+        return row, (vol, mr, ref), trace
+    return row, (vol, mr, ref)
 
 
 def _gas_key(op: OperatingPoint, overrides: tuple = ()) -> tuple:

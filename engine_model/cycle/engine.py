@@ -36,12 +36,17 @@ import math
 import numpy as np
 from numba import njit
 
+from .accel import mpe, pack_state, state_weights, unpack_state
 from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
                        woschni_velocity)
 from .layout import *  # noqa: F401,F403  (index constants)
 from .network import _add_rate, _lin_between, _orifice_between, _solve_chain
 from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
 from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer
+
+RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence estimate
+RHO_MAX = 0.97   # [-] ratios above this count as not contracting
+
 
 def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
     """Number of gas volumes for ``ncyl`` cylinders.
@@ -251,7 +256,7 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
+def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, trace, hist):
     """Integrate whole cycles until the engine repeats itself.
 
     Parameters
@@ -273,6 +278,15 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     mr : (ncyl * (nseg_in + nseg_ex),) float64
         Initial runner segment mass flows [kg/s] (intake runners, then exhaust,
         each runner's segments from its upstream end); overwritten.
+    ref : (ncyl, 5) float64
+        Per-cylinder reference state of the closed period: pressure [Pa],
+        temperature [K] and volume [m^3] at IVC, isentropic exponent
+        (gamma-1)/gamma [-] and mixture mass at SOC [kg]; overwritten with the
+        values at the end.  Rows with ``ref[k, 1] <= 0`` are unknown (cold
+        start) and get defaults.  The mixture mass at SOC of a cylinder that is
+        burning at the start is always re-derived from its state, so that the
+        burn that straddles the start completes whatever the previous run's
+        burn law (the remaining mixture over the remaining Wiebe fraction).
     vfix : (nvol,) float64
         Volumes [m^3] (cylinder entries ignored).
     out : (NOUT,) float64
@@ -280,6 +294,10 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     trace : (2*ncyl + 5, nstep) float64
         Last-cycle traces: cylinder pressures, cylinder temperatures, plenum,
         collector, throttle-body, intake-port-1 and exhaust-port-1 pressures [Pa, K].
+    hist : (nh, H_N0 + nvol*(NVCOL-1) + len(mr)) float64
+        Per-cycle record (row = cycle - 1, up to ``nh`` cycles; ``nh`` may be 0):
+        trapped mass [kg], net work [J], mass imbalance [-], then the end-of-cycle
+        state (volume masses and energies, runner flows).
     """
     ncyl = int(par[P_NCYL])
     nstep = int(par[P_NSTEP])
@@ -315,13 +333,17 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
     a1 = np.zeros(nacc)
     cyc_acc = np.zeros(nacc)
     # per-cylinder reference state: p_ivc, T_ivc, V_ivc, isentropic exponent, mixture mass at SOC
-    ref = np.zeros((ncyl, 5))
     for k in range(ncyl):
-        ref[k, 0] = par[P_PAMB]
-        ref[k, 1] = 330.0
-        ref[k, 2] = tab[T_V, idx_ivc]
-        ref[k, 3] = 0.4 / 1.4
+        if not (ref[k, 1] > 0.0):
+            ref[k, 0] = par[P_PAMB]
+            ref[k, 1] = 330.0
+            ref[k, 2] = tab[T_V, idx_ivc]
+            ref[k, 3] = 0.4 / 1.4
         ref[k, 4] = 0.0
+        li0 = (nstep - offs[k]) % nstep
+        if tab[T_PHASE, li0] > 1.5 and li0 != idx_soc:
+            xb0 = tab[T_XB, li0]
+            ref[k, 4] = vol[k, V_MM] / (1.0 - xb0) if xb0 < 1.0 - 1e-9 else vol[k, V_MM]
     knock_run = np.zeros(ncyl)       # running Livengood-Wu integral since IVC
     knock_cyc = np.zeros(ncyl)       # value reached in this cycle
     trapped = np.zeros(ncyl)
@@ -335,13 +357,18 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
 
     prev_trap = -1.0
     prev_work = 0.0
-    # Aitken (one-mode vector) extrapolation of the slow cycle-to-cycle mode
-    # (mostly burned gas washing out of the plenum): states at cycle ends.
-    hist_vol = np.zeros((2, nvol, NVCOL))
-    hist_mr = np.zeros((2, mr.shape[0]))
-    hist_m = np.zeros(4)
-    n_hist = 0
-    since_jump = 0
+    # MPE acceleration of the slow cycle-to-cycle modes (see ``accel``)
+    acc_k = int(par[P_ACCEL_K])
+    acc_warm = int(par[P_ACCEL_WARM])
+    nx = nvol * (NVCOL - 1) + mr.shape[0]
+    xs = np.zeros((max(acc_k, 1) + 2, nx))
+    xw = np.zeros(nx)
+    xe = np.zeros(nx)
+    G = np.zeros((max(acc_k, 1), max(acc_k, 1)))
+    grhs = np.zeros(max(acc_k, 1))
+    n_x = 0
+    d_prev = -1.0
+    rho_slow = RHO_MIN   # contraction ratio of the slowest mode seen by the last MPE fit
     converged = 0
     fail = 0
     cyc = 0
@@ -431,61 +458,75 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, vfix, out, trace):
         wnet = wgross.sum() + wpump.sum()
         min_ = cyc_acc[A_MIN] + cyc_acc[A_FUEL]
         mbal = abs(min_ - cyc_acc[A_OUT]) / min_ if min_ > 0.0 else 1.0
+        # Distance to the periodic solution, estimated from the change per cycle d
+        # and the contraction ratio rho of the last two changes: the remaining
+        # geometric tail is d*rho/(1 - rho).  rho is taken >= RHO_MIN (a change
+        # below tol is needed in any case) and a growing change never converges.
+        est = 1.0
+        have_est = False
         if prev_trap > 0.0:
             dtrap = abs(mtrap - prev_trap) / mtrap
             dwork = abs(wnet - prev_work) / max(abs(wnet), 0.01 * pref)
-            if cyc >= mincyc and dtrap < tol and dwork < tol and mbal < tol:
-                converged = 1
+            dn = max(dtrap, dwork, mbal)
+            if d_prev > 0.0:
+                rho = max(dn / d_prev, rho_slow)
+                est = dn * rho / (1.0 - rho) if rho < RHO_MAX else 1.0
+                have_est = True
+                if cyc >= mincyc and est < tol and dn < tol:
+                    converged = 1
+            d_prev = dn
+        else:
+            d_prev = -1.0
+        out[O_EST] = est
+        if cyc <= hist.shape[0]:
+            hrow = cyc - 1
+            hist[hrow, H_MTRAP] = mtrap
+            hist[hrow, H_WNET] = wnet
+            hist[hrow, H_MBAL] = mbal
+            j = H_N0
+            for i in range(nvol):
+                for c in range(NVCOL - 1):
+                    hist[hrow, j] = vol[i, c]
+                    j += 1
+            for i in range(mr.shape[0]):
+                hist[hrow, j] = mr[i]
+                j += 1
         prev_trap = mtrap
         prev_work = wnet
         if converged == 1:
             break
-        # shift the history (4 scalars, 2 states) and try an extrapolation
-        for j in range(3):
-            hist_m[j] = hist_m[j + 1]
-        hist_vol[0] = hist_vol[1]
-        hist_mr[0] = hist_mr[1]
-        hist_vol[1] = vol
-        hist_mr[1] = mr
-        # the slow mode lives in the manifolds: track the gas stored outside the cylinders
-        m_store = 0.0
-        for i in range(ncyl, nvol):
-            m_store += vol[i, V_MA] + vol[i, V_MM] + vol[i, V_MP]
-        hist_m[3] = m_store
-        n_hist = min(n_hist + 1, 4)
-        since_jump += 1
-        if par[P_AITKEN] > 0.5 and n_hist == 4 and since_jump >= 4 and cyc >= 4:
-            s1 = hist_m[1] - hist_m[0]
-            s2 = hist_m[2] - hist_m[1]
-            s3 = hist_m[3] - hist_m[2]
-            if s1 != 0.0 and s2 != 0.0:
-                q1 = s2 / s1
-                q = s3 / s2
-                # a clean geometric mode (two ratio estimates agree) that still matters
-                # against the tolerance; near convergence plain cycles finish the job
-                if 0.3 < q < 0.95 and abs(q - q1) < 0.1 and abs(s3) > max(0.05 * tol, 1e-5) * m_store:
-                    f = q / (1.0 - q)
-                    ok = True
-                    # species masses may be exactly zero; refuse only a clearly negative one
-                    for i in range(nvol):
-                        mi = vol[i, V_MA] + vol[i, V_MM] + vol[i, V_MP]
-                        for c in range(V_U):
-                            x = vol[i, c] + f * (vol[i, c] - hist_vol[0, i, c])
-                            if x < -1e-6 * mi:
-                                ok = False
-                    if ok:
-                        for i in range(nvol):
-                            for c in range(NVCOL - 1):
-                                vol[i, c] += f * (vol[i, c] - hist_vol[0, i, c])
-                                if c < V_U and vol[i, c] < 0.0:
-                                    vol[i, c] = 0.0
-                        for i in range(mr.shape[0]):
-                            mr[i] += f * (mr[i] - hist_mr[0, i])
-                        since_jump = 0
-                        n_hist = 0
+        # ---- acceleration: MPE over the last acc_k + 2 end-of-cycle states
+        if acc_k > 0 and cyc >= acc_warm:
+            pack_state(vol, mr, xs[n_x])
+            n_x += 1
+            if n_x == acc_k + 2:
+                jumped = False
+                if have_est and est > tol and cyc + 3 <= maxcyc:
+                    state_weights(vol, mr, xw, ncyl)
+                    ratio = mpe(xs, n_x, xw, xe, G, grhs)
+                    if ratio >= 0.0:
+                        # a species mass that the extrapolation would drive below zero
+                        # (mixture left in the exhaust from the start, decaying to 0)
+                        # drops to a tenth instead
+                        xl = xs[n_x - 1]
+                        for j in range(nvol * (NVCOL - 1)):
+                            if j % (NVCOL - 1) < V_U and xe[j] < 0.1 * xl[j]:
+                                xe[j] = 0.1 * xl[j]
+                        unpack_state(xe, vol, mr)
+                        jumped = True
+                        rho_slow = min(max(ratio, RHO_MIN), RHO_MAX)
                         prev_trap = -1.0   # the next cycle starts a fresh comparison
+                if jumped:
+                    pack_state(vol, mr, xs[0])
+                    n_x = 1
+                else:
+                    for r in range(n_x - 1):
+                        xs[r, :] = xs[r + 1, :]
+                    n_x -= 1
 
+    est = out[O_EST]
     out[:] = 0.0
+    out[O_EST] = est
     out[O_CYCLES] = cyc
     out[O_CONVERGED] = converged
     out[O_FAIL] = fail

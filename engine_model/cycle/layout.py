@@ -70,10 +70,11 @@ P_IDX_EVO = 36
 P_IDX_SOC = 37
 P_MINCYC = 38       # minimum cycles before convergence may be declared
 P_IR_NSEG = 39      # lumped segments per intake runner (>= 1; 1 when quasi-steady)
-P_AITKEN = 40       # 1 = accelerate the slow cycle-to-cycle mode by Aitken extrapolation
+P_ACCEL_K = 40      # modes removed per MPE extrapolation of the cycle iteration (0 = plain iteration)
 P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
 P_ER_NSEG = 42      # lumped segments per exhaust runner
-NPAR = 43
+P_ACCEL_WARM = 43   # first cycle whose end state enters the MPE window
+NPAR = 44
 
 # ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
 T_V = 0        # cylinder volume [m3]
@@ -111,9 +112,16 @@ O_PPLENUM = 20     # cycle-mean plenum pressure [Pa]
 O_DTRAP = 21       # last relative change of trapped mass [-]
 O_DIMEP = 22       # last relative change of net work [-]
 O_MAIR_TRAP = 23   # fresh charge (air+fuel) trapped at IVC, all cylinders [kg]
-NOUT = 24
+O_EST = 24         # estimated relative distance of the last cycle to the periodic solution [-]
+NOUT = 25
 
 # ------------------------------------------------------------------ traces of the last cycle (trace[row, global_idx])
 TR_P_CYL0 = 0      # rows 0..ncyl-1: cylinder pressures [Pa]
 # then: ncyl rows of cylinder temperatures, plenum pressure, collector pressure,
 # throttle-body pressure, intake-port-1 pressure, exhaust-port-1 pressure
+
+# ------------------------------------------------------------------ per-cycle history (hist[cycle-1, col])
+H_MTRAP = 0        # trapped mass at IVC, all cylinders [kg]
+H_WNET = 1         # net indicated work, all cylinders [J]
+H_MBAL = 2         # |in - out| / in of the cycle [-]
+H_N0 = 3           # then the end-of-cycle state: vol[:, :NVCOL-1] row by row, then mr
