@@ -71,6 +71,7 @@ class RunSettings:
     map_speed: str | None = None
     learning_sizes: tuple = (12, 16, 24, 32, 48, 64)
     learning_seeds: tuple = (0, 1, 2)
+    holdout: dict = field(default_factory=dict)
     stages: tuple = STAGES
 
     def __post_init__(self):
@@ -89,7 +90,8 @@ QUICK = RunSettings(
     calibration=CalibrationSettings(step_deg=1.0, airflow_grid=(2, 2, 1), airflow_starts=1, airflow_max_nfev=2,
                                     n_bdur=7, n_m=7, surface="cubic"),
     doe_points=16, ident_grid=(5, 5), map_throttle="30,60,100", map_speed="6000,9000,12000",
-    learning_sizes=(12, 16), learning_seeds=(0,))
+    learning_sizes=(12, 16), learning_seeds=(0,),
+    holdout={"throttle_pct": (20, 60, 100), "speed_rpm": (6000, 9000, 12000), "spark_offset": (-15, -5, 5)})
 
 
 def settings_to_dict(rs: RunSettings) -> dict:
@@ -133,7 +135,7 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
     from engine_model.burnlaw import BurnLaw
     from engine_model.identify import identification_plan, identify
     from engine_model.mapmodel import fit_map_model
-    from engine_model.virtual_bench import VirtualBench
+    from engine_model.virtual_bench import NoiseModel, VirtualBench
 
     vdir, mdir = work / "virtual_bench", work / "model"
     vdir.mkdir(parents=True, exist_ok=True)
@@ -188,20 +190,39 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
               "bdur_rmse_deg": float(np.sqrt(np.mean(err_b ** 2))), "bdur_bias_deg": float(err_b.mean()),
               "m_rmse": float(np.sqrt(np.mean(err_m ** 2))), "m_bias": float(err_m.mean())}
 
+    if len(good) < 6:
+        raise RuntimeError(f"identification: only {len(good)} of {len(ident)} virtual-bench points were identified "
+                           "within tolerance; a map model needs >= 6 (see virtual_bench/identified.parquet)")
     model = fit_map_model(good, spec=cal_spec)
     model.save(mdir / "model.json")
     cv = model.cv_table()
     write_parquet(cv, mdir / "cv.parquet")
-    test = learning.holdout_grid()
-    pred = model.predict(test)
-    tru = law.predict(test)
-    held = {"bdur_rmse_deg": float(np.sqrt(np.mean((pred["bdur_10_90_deg"] - tru["bdur_10_90_deg"]) ** 2))),
+
+    # where can the truth engine run?  The hold-out grid once through the noise-free virtual bench (quick
+    # solver); the map is scored there, and the learning curve loses the points the bench would abort
+    test = learning.holdout_grid(**rs.holdout)
+    test["point_id"] = [f"h{i:04d}" for i in range(len(test))]
+    quiet = dataclasses.replace(bench, noise=NoiseModel.none())
+    ev_hold = SweepEvaluator(work / "sweeps", addr, spec=spec, step_deg=max(quick.step_deg, rs.step_deg),
+                             tolerance=quick.tolerance, label="holdout", progress=progress, overrides=overrides)
+    hold = quiet.measure(test, evaluate=ev_hold)
+    write_parquet(hold, vdir / "holdout_status.parquet")
+    runnable = (hold["status"] == "ok").to_numpy()
+    feas = learning.nearest_feasible(test, runnable)
+    test_ok = test[runnable].reset_index(drop=True)
+    pred = model.predict(test_ok)
+    tru = law.predict(test_ok)
+    held = {"points": int(len(test_ok)), "of": int(len(test)),
+            "bdur_rmse_deg": float(np.sqrt(np.mean((pred["bdur_10_90_deg"] - tru["bdur_10_90_deg"]) ** 2))),
             "m_rmse": float(np.sqrt(np.mean((pred["wiebe_m"] - tru["wiebe_m"]) ** 2)))}
 
     # learning curve: identification error as measured above, designs against a full grid
     sb, sm = max(id_err["bdur_rmse_deg"], 0.1), max(id_err["m_rmse"], 0.02)
     curve = learning.learning_curve(None, law, sizes=rs.learning_sizes, seeds=rs.learning_seeds,
-                                    identify_seeded=lambda s: learning.noisy_truth(law, sb, sm, seed=s))
+                                    designs=("grid", "d_optimal_feasible", "sobol"), test_points=test_ok,
+                                    feasible=feas,
+                                    identify_seeded=lambda s: learning.noisy_truth(law, sb, sm, seed=s,
+                                                                                   feasible=feas))
     write_parquet(curve, mdir / "learning_curve.parquet")
     learning.plot_learning_curve(curve, mdir / "learning_curve.png")
     summ = learning.summarise(curve)
@@ -212,7 +233,8 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
              f"BDUR10-90 RMSE {id_err['bdur_rmse_deg']:.2f} deg (bias {id_err['bdur_bias_deg']:+.2f}), m RMSE "
              f"{id_err['m_rmse']:.2f} (bias {id_err['m_bias']:+.2f}).",
              f"Global model (chosen per output by K-fold CV: {model.chosen_}); error against the hidden law on "
-             f"the hold-out grid: BDUR10-90 {held['bdur_rmse_deg']:.2f} deg, m {held['m_rmse']:.2f}.",
+             f"the {held['points']} runnable points of the {held['of']}-point hold-out grid: BDUR10-90 "
+             f"{held['bdur_rmse_deg']:.2f} deg, m {held['m_rmse']:.2f}.",
              f"Learning curve: identification noise {sb:.2f} deg / {sm:.2f} (as measured above), designs "
              "against a full grid."]
     write_report(mdir, "model", "Virtual bench, identification and the global model",
