@@ -410,3 +410,28 @@ def test_fitted_map_model_file_drives_the_search(tmp_path):
     other = spec.with_values({"geometry.compression_ratio": 12.0})
     with pytest.raises(ValueError, match=r"fitted for engine spec"):
         build_maps(other, model, grid=GRID, evaluate=synthetic_engine)
+
+
+def test_truth_burn_law_mbt_within_2_deg_and_torque_within_1_pct():
+    """With the virtual bench's hidden burn law as the model: the issue's acceptance numbers on a 2 x 2 grid.
+
+    Against a 1-deg brute-force sweep with the same law: MBT within 2 deg where MBT sets the spark, and torque at
+    the table value within 1 % of the best knock-safe torque of the sweep in every feasible cell.
+    """
+    from engine_model.burnlaw import BurnLaw
+
+    spec, law = default_spec(), BurnLaw()
+    res = build_maps(spec, law, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
+    lim = res.settings.knock_limit
+    for _, cell in res.cells[res.cells["feasible"]].iterrows():
+        centre = cell["spark_mbt_deg_btdc"] if math.isfinite(cell["spark_mbt_deg_btdc"]) else cell["spark_deg_btdc"]
+        fine = _fine_sweep(spec, law, cell, centre - 8, centre + 8)
+        safe = fine[fine["knock_index"] < lim]
+        assert cell["brake_torque_nm"] >= 0.99 * safe["brake_torque_nm"].max()
+        if cell["limited_by"] == "mbt":
+            sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
+            k = int(np.argmax(tq))
+            near = np.abs(sp - sp[k]) <= 6
+            a, b, _ = np.polyfit(sp[near], tq[near], 2)
+            assert abs(cell["spark_mbt_deg_btdc"] - (-b / (2 * a))) <= 2.0
+    assert res.cells["feasible"].sum() >= 3 and (res.cells["limited_by"] == "mbt").any(), res.cells["limited_by"].tolist()
