@@ -103,6 +103,12 @@ def test_lambda_table_holes_and_junk_are_named(tmp_path):
     p.write_text("throttle_pct,5000,1000\n0,1.0,1.0\n100,0.9,0.9\n")
     with pytest.raises(ValueError, match=r"lam.csv: .*speed_rpm: breakpoints must be sorted"):
         LambdaTable.from_csv(p)
+    p.write_text("throttle_pct,1000,1000\n0,1.0,1.0\n100,0.9,0.9\n")
+    with pytest.raises(ValueError, match=r"lam.csv: .*duplicate breakpoint 1000 rpm"):
+        LambdaTable.from_csv(p)
+    p.write_text("throttle_pct,1000,5000\n0,1.0\n100,0.9,0.9\n")
+    with pytest.raises(ValueError, match=r"row 0 \(throttle 0 %\), column 1 \(5000 rpm\): hole"):
+        LambdaTable.from_csv(p)
     with pytest.raises(ValueError, match=r"file not found"):
         LambdaTable.from_csv(tmp_path / "missing.csv")
     # a good table interpolates onto any grid inside it, and refuses one that leaves it
@@ -435,3 +441,12 @@ def test_truth_burn_law_mbt_within_2_deg_and_torque_within_1_pct():
             a, b, _ = np.polyfit(sp[near], tq[near], 2)
             assert abs(cell["spark_mbt_deg_btdc"] - (-b / (2 * a))) <= 2.0
     assert res.cells["feasible"].sum() >= 3 and (res.cells["limited_by"] == "mbt").any(), res.cells["limited_by"].tolist()
+
+
+def test_grid_from_an_ecu_table_csv(tmp_path):
+    p = tmp_path / "ecu.csv"
+    p.write_text("throttle_pct,1000,2000 rpm,4000\n0,1,1,1\n50,1,1,1\n100,1,1,1\n")
+    assert EcuGrid.from_csv(p) == EcuGrid((0, 50, 100), (1000, 2000, 4000))
+    p.write_text("throttle_pct,1000,1000\n0,1,1\n100,1,1\n")
+    with pytest.raises(ValueError, match=r"ecu.csv: EcuGrid.speed_rpm: duplicate breakpoint 1000 rpm"):
+        EcuGrid.from_csv(p)
