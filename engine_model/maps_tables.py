@@ -73,6 +73,20 @@ def _check_axis(name: str, values, lo: float, hi: float, unit: str) -> tuple[flo
     return tuple(arr.tolist())
 
 
+def _read_wide_csv(p: Path) -> list[list[str]]:
+    """Rows of a wide-table CSV as text, header kept raw (pandas would rename duplicate headers)."""
+    import csv
+
+    try:
+        with open(p, newline="") as fh:
+            rows = [r for r in csv.reader(fh) if r]
+    except (OSError, csv.Error, UnicodeDecodeError) as exc:
+        raise ValueError(f"{p}: could not be read as CSV: {exc}") from None
+    if len(rows) < 3 or len(rows[0]) < 3:
+        raise ValueError(f"{p}: expected a wide table (header + >= 2 rows, throttle column + >= 2 speeds)")
+    return rows
+
+
 @dataclass(frozen=True)
 class EcuGrid:
     """Breakpoints of the ECU tables: rows throttle [%] (0-100), columns speed [rpm] (> 0).
@@ -100,6 +114,23 @@ class EcuGrid:
         return pd.DataFrame({"cell": np.arange(nt * ns), "i": i, "j": j,
                              "throttle_pct": np.asarray(self.throttle_pct)[i],
                              "speed_rpm": np.asarray(self.speed_rpm)[j]})
+
+    @classmethod
+    def from_csv(cls, path) -> "EcuGrid":
+        """Breakpoints of a wide table CSV (first column throttle %, header speeds in rpm), e.g. an ECU export."""
+        p = Path(path)
+        if not p.is_file():
+            raise ValueError(f"{p}: file not found")
+        rows = _read_wide_csv(p)
+        try:
+            speeds = [float(str(c).strip().removesuffix("rpm").strip()) for c in rows[0][1:]]
+            thr = [float(r[0]) for r in rows[1:]]
+        except ValueError as exc:
+            raise ValueError(f"{p}: breakpoints must be numbers (first column throttle %, header rpm): {exc}") from None
+        try:
+            return cls(tuple(thr), tuple(speeds))
+        except ValueError as exc:
+            raise ValueError(f"{p}: {exc}") from None
 
     def check_spec(self, spec: EngineSpec) -> None:
         """ValueError if a speed breakpoint exceeds the engine's maximum speed."""
@@ -199,11 +230,13 @@ class LambdaTable:
         p = Path(path)
         if not p.is_file():
             raise ValueError(f"{p}: file not found")
-        try:
-            wide = pd.read_csv(p, dtype=str, keep_default_na=False)
-        except Exception as exc:  # noqa: BLE001 - any parser failure is reported with the file name
-            raise ValueError(f"{p}: could not be read as CSV: {exc}") from None
-        wide = wide.replace({"": np.nan})
+        rows = _read_wide_csv(p)
+        n = len(rows[0])
+        if any(len(r) > n for r in rows[1:]):
+            i = next(k for k, r in enumerate(rows[1:]) if len(r) > n)
+            raise ValueError(f"{p}: row {i} has {len(rows[i + 1])} fields for {n} header columns")
+        body = [[(v if v.strip() != "" else np.nan) for v in r] + [np.nan] * (n - len(r)) for r in rows[1:]]
+        wide = pd.DataFrame(body, columns=pd.Index(rows[0]))   # raw header: duplicates stay duplicates
         return cls.from_frame(wide, source=str(p))
 
     def on_grid(self, grid: EcuGrid) -> np.ndarray:

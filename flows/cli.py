@@ -119,8 +119,8 @@ def cmd_maps(args) -> int:
                                   ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v))
                 if v is not None}
     run_maps(args.model, args.out, spec=args.spec, throttle=args.throttle, speed=args.speed,
-             lambda_table=args.lambda_table, settings=settings, step_deg=args.step_deg, workers=args.workers,
-             dask_address=args.dask_address)
+             lambda_table=args.lambda_table, settings=settings, grid=args.grid, step_deg=args.step_deg,
+             workers=args.workers, dask_address=args.dask_address)
     return 0
 
 
@@ -228,6 +228,7 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--out", required=True, help="output folder; tables go to OUT/maps/, sweeps to OUT/sweeps/")
     mp.add_argument("--throttle", default=None, help="throttle breakpoints [%%], '0,5,10,...' or 'start:stop:step'")
     mp.add_argument("--speed", default=None, help="speed breakpoints [rpm], e.g. '1000:13000:1000' (the default)")
+    mp.add_argument("--grid", default=None, help="take the breakpoints from a wide table CSV (e.g. an ECU export)")
     mp.add_argument("--lambda-table", default=None, help="target-lambda wide CSV (rows throttle %%, columns rpm)")
     mp.add_argument("--knock-margin", type=float, default=None, help="keep knock_index < 1 - margin (default 0.15)")
     mp.add_argument("--safety-retard", type=float, default=None, help="retard from MBT [deg] (default 0)")

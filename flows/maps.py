@@ -11,7 +11,6 @@ No physics here: the flow wires the evaluations to Dask and writes the files.
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import time
 from pathlib import Path
 
@@ -28,11 +27,13 @@ from engine_model.maps import (EcuGrid, LambdaTable, MapSettings, build_maps, lo
 
 
 def _inputs(model: str, spec: str | None, throttle: str | None, speed: str | None, lambda_table: str | None,
-            settings: dict | None):
+            settings: dict | None, grid_csv: str | None = None):
     """Load and check every input (before any cluster is started); ValueError on bad input."""
     eng = load_spec(spec)
     mdl = load_model(model)
-    grid = EcuGrid(parse_breakpoints(throttle, "throttle") if throttle else EcuGrid().throttle_pct,
+    if grid_csv and (throttle or speed):
+        raise ValueError("give either a grid CSV or throttle/speed breakpoints, not both")
+    grid = EcuGrid.from_csv(grid_csv) if grid_csv else EcuGrid(parse_breakpoints(throttle, "throttle") if throttle else EcuGrid().throttle_pct,
                    parse_breakpoints(speed, "speed") if speed else EcuGrid().speed_rpm)
     grid.check_spec(eng)
     if callable(getattr(mdl, "check_spec", None)):
@@ -63,20 +64,22 @@ def maps_into(out: Path, eng, mdl, grid, lam, st, spec: str | None, address: str
 @flow(name="maps", log_prints=False, validate_parameters=False)
 def maps_flow(model: str, out: str, spec: str | None = None, throttle: str | None = None, speed: str | None = None,
               lambda_table: str | None = None, settings: dict | None = None, step_deg: float = 0.5,
-              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True) -> dict:
+              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+              grid: str | None = None) -> dict:
     """ECU tables from the combustion model file ``model`` into ``out``/maps/ (sweeps in ``out``/sweeps/)."""
-    eng, mdl, grid, lam, st = _inputs(model, spec, throttle, speed, lambda_table, settings)
+    eng, mdl, grid, lam, st = _inputs(model, spec, throttle, speed, lambda_table, settings, grid)
     with shared_cluster(workers, dask_address) as addr:
         return maps_into(Path(out), eng, mdl, grid, lam, st, spec, addr, step_deg, progress)
 
 
-def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None, settings=None, **kwargs) -> dict:
+def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None, settings=None, grid=None,
+             **kwargs) -> dict:
     """``mbc maps``: validate inputs, then run :func:`maps_flow` under one Prefect API."""
-    _inputs(str(model), spec, throttle, speed, lambda_table, settings)
+    _inputs(str(model), spec, throttle, speed, lambda_table, settings, grid)
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = maps_flow(model=str(model), out=str(out), spec=spec, throttle=throttle, speed=speed,
                         lambda_table=None if lambda_table is None else str(lambda_table), settings=settings,
-                        **kwargs)
+                        grid=None if grid is None else str(grid), **kwargs)
     s = res["stats"]
     print(f"maps: {s['cells']} cells ({s['feasible']} feasible; infeasible {s['infeasible']}); limited by "
           f"{s['limited_by']}; {s['simulated_points']} simulations in {s['evaluate_calls']} batches; "
@@ -86,5 +89,3 @@ def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None
     return res
 
 
-def summary_json(res: dict) -> str:
-    return json.dumps(res, indent=1, default=str)

@@ -34,6 +34,14 @@ def test_mbc_maps_writes_all_tables(prefect_api, tmp_path, capsys):
     lam = LambdaTable.from_csv(maps / "lambda_target.csv")
     assert lam.values[-1][0] == 0.9 and lam.values[0][0] == 1.0
     assert "9 cells" in capsys.readouterr().out
+    # the same command again reads every batch back from its sweep folder (nothing recomputed), same tables
+    before = pd.read_parquet(maps / "ecu_tables.parquet")
+    assert main(["maps", "--model", str(model), "--out", str(out), "--throttle", "20,60,100",
+                 "--speed", "4000:12000:4000", "--step-deg", "1", "--workers", "2"]) == 0
+    for man in (out / "sweeps").glob("maps-*/manifest.json"):
+        m = json.loads(man.read_text())
+        assert m["chunks_computed"] == 0 and m["chunks_skipped"] == m["chunks"], man
+    pd.testing.assert_frame_equal(pd.read_parquet(maps / "ecu_tables.parquet"), before)
 
 
 def test_mbc_maps_bad_input_is_refused_before_any_work(tmp_path, capsys):

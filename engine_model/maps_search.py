@@ -1,0 +1,214 @@
+"""The spark search of :func:`engine_model.maps.build_maps`: candidate selection per cell and batched evaluation.
+
+Per cell, :func:`_decide` looks at every point evaluated so far and either asks
+for more spark values or resolves the cell (MBT, knock border, zones);
+:class:`_Runner` turns the requests of all cells into one plan per stage, asks
+the combustion model for (BDUR10-90, m) at every candidate spark, and calls the
+``evaluate`` callable once.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pandas as pd
+
+from . import doe, wiebe
+
+if TYPE_CHECKING:
+    from .maps import MapSettings
+
+def _predict(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """(bdur_10_90, m) per row; NaN where the model's answer is missing or unphysical."""
+    pred = model.predict(pts[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]].reset_index(drop=True))
+    if len(pred) != len(pts) or not {"bdur_10_90_deg", "wiebe_m"} <= set(pred.columns):
+        raise ValueError(f"combustion model {type(model).__name__}.predict returned {len(pred)} rows / columns "
+                         f"{list(pred.columns)}; expected {len(pts)} rows with bdur_10_90_deg, wiebe_m")
+    b = pd.to_numeric(pred["bdur_10_90_deg"], errors="coerce").to_numpy(float).copy()
+    m = pd.to_numeric(pred["wiebe_m"], errors="coerce").to_numpy(float).copy()
+    bad = ~(np.isfinite(b) & np.isfinite(m) & (b > 0) & (b < 180) & (m > -1) & (m < 20))
+    b[bad], m[bad] = np.nan, np.nan
+    return b, m
+
+
+def _vertex(x, y) -> float:
+    """Abscissa of the parabola through three points; the middle point if not concave."""
+    (x0, x1, x2), (y0, y1, y2) = x, y
+    d = (x1 - x0) * (x1 - x2) * (x0 - x2)
+    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / d
+    b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / d
+    if not a < 0:
+        return float(x1)
+    return float(min(max(-b / (2 * a), x0), x2))
+
+
+def _peak(s: np.ndarray, t: np.ndarray, imax: int, window: float) -> float:
+    """Spark of maximum torque: least-squares parabola through the points within ``window`` of the best one.
+
+    Near MBT the torque curve is flat (0.1 % over +-2 deg) while converged-cycle
+    torque carries ~0.05-0.1 % noise from the cycle-convergence tolerance and
+    the warm start, so a 3-point vertex can wander by 2 deg; a least-squares
+    fit over +-``window`` deg averages that noise.  Falls back to the 3-point
+    vertex with fewer than 4 points or a non-concave fit.
+    """
+    near = np.abs(s - s[imax]) <= window + 1e-9
+    x, y = s[near], t[near]
+    if x.size >= 4 and np.any(x < s[imax]) and np.any(x > s[imax]):
+        a, b, _c = np.polyfit(x - s[imax], y, 2)
+        if a < 0:
+            return float(np.clip(s[imax] - b / (2 * a), x.min(), x.max()))
+    return _vertex(s[imax - 1:imax + 2], t[imax - 1:imax + 2])
+
+
+def _knock_cross(s1, k1, s2, k2, limit) -> float:
+    """Spark where the knock index reaches ``limit``, log-linear through two points (linear if not positive)."""
+    if k1 > 0 and k2 > 0 and k1 != k2:
+        return float(s1 + math.log(limit / k1) * (s2 - s1) / math.log(k2 / k1))
+    if k2 != k1:
+        return float(s1 + (limit - k1) * (s2 - s1) / (k2 - k1))
+    return float(s1)
+
+
+# --------------------------------------------------------------------------- the spark search
+
+_EVAL_KEEP = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
+              "fuel_mass_flow_kg_h", "exhaust_temp_k", "cycles_run", "converged", "status")
+
+
+def _model_spark(model, cells: pd.DataFrame, st: MapSettings) -> np.ndarray:
+    """Per cell, the spark [deg BTDC] at which the model's (BDUR10-90, m) put CA50 at the target (1 deg grid)."""
+    sparks = np.arange(math.ceil(st.spark_min_deg_btdc), math.floor(st.spark_max_deg_btdc) + 1, 1.0)
+    rep = cells.loc[np.repeat(cells.index.to_numpy(), sparks.size)].reset_index(drop=True)
+    rep["spark_deg_btdc"] = np.tile(sparks, len(cells))
+    b, m = _predict(model, rep)
+    ok = np.isfinite(b)
+    ca50 = np.full(len(rep), np.nan)
+    ca50[ok] = wiebe.angle_at_fraction(0.5, rep["spark_deg_btdc"].to_numpy()[ok],
+                                       wiebe.bdur_10_90_to_bdur(b[ok], m[ok]), m[ok])
+    err = np.abs(ca50 - st.ca50_target_deg_atdc).reshape(len(cells), sparks.size)
+    err = np.where(np.isfinite(err), err, np.inf)
+    best = sparks[np.argmin(err, axis=1)]
+    # no usable prediction at all: fall back to the DOE prior's spark
+    none = ~np.isfinite(err).any(axis=1)
+    if none.any():
+        est = np.atleast_1d(doe.spark_estimate(cells["speed_rpm"].to_numpy(float)[none],
+                                               cells["throttle_pct"].to_numpy(float)[none]))
+        best[none] = np.clip(est, st.spark_min_deg_btdc, st.spark_max_deg_btdc)
+    return best
+
+
+def _decide(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
+    """Next sparks to evaluate for one cell, or its resolution.
+
+    ``ev``: the cell's evaluations (any order).  Returns ``('need', [spark, ...])``
+    or ``('done', {status, mbt, border, raw, limited_by})``; spark values in deg BTDC.
+    """
+    lo, hi, lim = st.spark_min_deg_btdc, st.spark_max_deg_btdc, st.knock_limit
+    ok = ev[np.isfinite(ev["brake_torque_nm"]) & np.isfinite(ev["knock_index"])].sort_values("spark_deg_btdc")
+    ok = ok.drop_duplicates("spark_deg_btdc")
+    s, tq, kn = (ok[c].to_numpy(float) for c in ("spark_deg_btdc", "brake_torque_nm", "knock_index"))
+    eps = 1e-6
+    if s.size == 0:
+        return "done", {"status": "failed", "mbt": math.nan, "border": math.nan, "raw": math.nan,
+                        "limited_by": "infeasible"}
+    if kn[0] >= lim:   # knocks at the most retarded spark tried
+        if s[0] <= lo + eps:
+            return "done", {"status": "zone1", "mbt": math.nan, "border": lo, "raw": lo, "limited_by": "infeasible"}
+        guess = _knock_cross(s[0], kn[0], s[1], kn[1], lim) if s.size > 1 else s[0] - 8.0
+        return "need", sorted({max(lo, min(guess - 0.5, s[0] - 1.0)), max(lo, min(guess - 4.5, s[0] - 5.0))})
+    bm = ok["bmep_bar"].to_numpy(float) if "bmep_bar" in ok.columns else np.full(s.size, np.inf)
+    if np.all(bm < st.min_bmep_bar):   # zone 2: no spark gives a holdable load; no refinement spent here
+        safe = kn < lim
+        j = int(np.argmax(np.where(safe, tq, -np.inf)))
+        return "done", {"status": "zone2", "mbt": math.nan, "border": s[safe].max() if safe.any() else lo,
+                        "raw": s[j], "limited_by": "infeasible"}
+    knocking = np.flatnonzero(kn >= lim)
+    kk = int(knocking[0]) if knocking.size else s.size
+    S, T = s[:kk], tq[:kk]
+    s_knock = s[kk] if kk < s.size else None
+    border = S[-1] if s_knock is not None else hi
+    imax = int(np.argmax(T))
+    if imax == S.size - 1:          # torque still rising at the top of the knock-safe range
+        if s_knock is None:
+            if S[-1] >= hi - eps:
+                return "done", {"status": "ok", "mbt": hi, "border": hi, "raw": hi, "limited_by": "spark_max"}
+            return "need", sorted({min(hi, S[-1] + 4.0), min(hi, S[-1] + 8.0)})
+        cross = _knock_cross(S[-1], kn[kk - 1], s_knock, kn[kk], lim)
+        if cross - S[-1] <= st.knock_tol_deg or s_knock - S[-1] <= st.knock_tol_deg:
+            # MBT beyond the knock border: estimated from all points (knocking ones too) if the peak is inside
+            j = int(np.argmax(tq))
+            mbt = _vertex(s[j - 1:j + 2], tq[j - 1:j + 2]) if 0 < j < s.size - 1 else math.nan
+            return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": S[-1], "limited_by": "knock"}
+        target = cross - 0.2 if cross - 0.2 < s_knock - 0.05 else 0.5 * (S[-1] + s_knock)
+        return "need", [max(S[-1] + 0.05, target)]
+    if imax == 0 and S[0] > lo + eps:   # torque falls from the most retarded spark: MBT further back
+        return "need", sorted({max(lo, S[0] - 4.0), max(lo, S[0] - 8.0)})
+    if imax == 0:
+        mbt = lo
+    else:
+        mbt = _peak(S, T, imax, st.mbt_window_deg)
+        h = st.refine_step_deg
+        cand = [c for c in (mbt - h, mbt, mbt + h) if lo <= c <= min(hi, border)]
+        cand = [c for c in cand if np.min(np.abs(s - c)) > 0.4 * h]
+        if cand:
+            return "need", sorted(cand)
+    raw = mbt - st.safety_retard_deg
+    limited = "retard" if st.safety_retard_deg > 0 else "mbt"
+    return "done", {"status": "ok", "mbt": mbt, "border": border, "raw": max(lo, raw), "limited_by": limited}
+
+
+class _Runner:
+    """Batched evaluations: builds one plan per stage (rows of a cell consecutive, spark ascending)."""
+
+    def __init__(self, model, cells: pd.DataFrame, evaluate, progress):
+        self.model, self.cells, self.evaluate, self.progress = model, cells, evaluate, progress
+        self.frames: list[pd.DataFrame] = []
+        self.calls = 0
+        self.points = 0
+
+    def run(self, requests: dict[int, list[float]], tag: str) -> pd.DataFrame:
+        rows = []
+        for c in sorted(requests):
+            for k, s in enumerate(sorted(set(round(float(x), 2) for x in requests[c]))):
+                rows.append({"point_id": f"map-{tag}-c{c:04d}-{k:02d}", "cell": c, "stage": tag,
+                             "throttle_pct": self.cells.at[c, "throttle_pct"],
+                             "speed_rpm": self.cells.at[c, "speed_rpm"], "spark_deg_btdc": s,
+                             "lambda": self.cells.at[c, "lambda"]})
+        plan = pd.DataFrame(rows)
+        if plan.empty:
+            return plan
+        b, m = _predict(self.model, plan)
+        plan["bdur_10_90_deg"], plan["wiebe_m"] = b, m
+        good = np.isfinite(b)
+        out = plan.copy()
+        for col in _EVAL_KEEP:
+            out[col] = np.nan
+        out["converged"] = False
+        out["status"] = np.where(good, "", "failed: no combustion prediction").astype(object)
+        if good.any():
+            send = plan[good].reset_index(drop=True)
+            cols = ["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m"]
+            res = self.evaluate(send[cols])
+            self.calls += 1
+            self.points += len(send)
+            if len(res) != len(send):
+                raise ValueError(f"evaluate returned {len(res)} rows for a plan of {len(send)} points")
+            res = res.reset_index(drop=True)
+            if "point_id" in res.columns and list(res["point_id"].astype(str)) != list(send["point_id"]):
+                raise ValueError("evaluate returned the points in a different order than planned")
+            idx = np.flatnonzero(good)
+            for col in _EVAL_KEEP:
+                if col in res.columns:
+                    vals = res[col].to_numpy(dtype=object if col == "status" else float)
+                    if col == "converged":
+                        vals = res[col].astype(bool).to_numpy()
+                    out.loc[idx, col] = vals
+        self.frames.append(out)
+        if self.progress is not None:
+            self.progress(tag, len(plan))
+        return out
+
+    def evaluations(self) -> pd.DataFrame:
+        return pd.concat(self.frames, ignore_index=True) if self.frames else pd.DataFrame()
