@@ -80,7 +80,7 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
     progress : bool
         Progress bars per sweep batch.
     """
-    out = Path(out)
+    out = Path(out).resolve()   # absolute, so the report links its figures relative to itself
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     figs = out / "figures"
