@@ -11,16 +11,18 @@ Every function that simulates takes an ``evaluate(plan DataFrame) -> results
 DataFrame`` callable (default: in-process :func:`engine_model.simulate`), so
 the flows can route all simulations through the Dask sweep pipeline.  The
 science lives in :mod:`engine_model.calibrate_airflow`,
-:mod:`engine_model.identify`, :mod:`engine_model.identifiability`; figures in
+:mod:`engine_model.identify`, :mod:`engine_model.identify_eta`,
+:mod:`engine_model.identifiability`; figures in
 :mod:`engine_model.calibrate_plots`.
 """
 
 from __future__ import annotations
 
-from .calibrate_airflow import (AIRFLOW_NOISE_PCT, DEFAULT_PARAMETERS, AirflowMatch, Parameter, airflow_plan,  # noqa: F401
-                                ga_rel_pct, match_airflow, matching_burn)
+from .calibrate_airflow import (AIRFLOW_NOISE_PCT, DEFAULT_PARAMETERS, AirflowMatch,  # noqa: F401
+                                Parameter, airflow_plan, ga_rel_pct, match_airflow, matching_burn)
 from .calibrate_plots import plot_airflow_match, plot_eta_relation, plot_identification  # noqa: F401
 from .identifiability import identifiability_check, synthetic_bench  # noqa: F401
-from .identify import (DEFAULT_ETAS, Identification, JointFit, Tolerances, eta_sensitivity,  # noqa: F401
-                       fit_eta_relation, grid_axes, identification_plan, identify, identify_point, identify_quick,
-                       joint_fit, point_surfaces, power_isolines, quadratic_rs, relation_text, terms_used)
+from .identify import (Identification, Tolerances, grid_axes, identification_plan, identify,  # noqa: F401
+                       identify_point, identify_quick, point_surfaces, quadratic_rs, terms_used)
+from .identify_eta import (DEFAULT_ETAS, JointFit, eta_sensitivity, fit_eta_relation, joint_fit,  # noqa: F401
+                           power_isolines, relation_text)

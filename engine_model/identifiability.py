@@ -30,7 +30,8 @@ import pandas as pd
 
 from . import wiebe
 from .doe import CA50_TARGET_DEG_ATDC
-from .identify import Identification, Tolerances, identification_plan, identify, identify_point, joint_fit
+from .identify import Identification, Tolerances, identification_plan, identify, identify_point
+from .identify_eta import joint_fit
 
 
 @dataclass(frozen=True)
@@ -76,7 +77,8 @@ def synthetic_bench(truths: pd.DataFrame, evaluate, eta_trans: float = 0.95, ove
         plan[k] = float(v)
     sim = evaluate(plan).reset_index(drop=True)
     if not sim["converged"].all():
-        raise ValueError(f"synthetic_bench: truth points did not converge: {sim.loc[~sim['converged'], 'point_id'].tolist()}")
+        bad = sim.loc[~sim["converged"], "point_id"].tolist()
+        raise ValueError(f"synthetic_bench: truth points did not converge: {bad}")
     p = sim["brake_power_kw"].to_numpy(float) * eta_trans
     omega = t["speed_rpm"].to_numpy(float) * 2 * math.pi / 60
     bench = pd.DataFrame({

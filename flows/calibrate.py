@@ -43,9 +43,9 @@ class CalibrationSettings:
 
     eta_trans [-]; step_deg [deg] crank step of the identification sweep; airflow_step_deg [deg] of the
     airflow match (1 deg: airflow within 0.22 % (mean 0.03 %) of 0.5 deg on the matched R6, measured over
-    3 speeds x 9 burns; brake power differs up to 1 %, hence 0.5 deg for the identification); airflow_grid: coarse-search
-    points per airflow parameter; airflow_starts / airflow_max_nfev: local least-squares runs and
-    their iteration cap; n_bdur x n_m: identification grid (>= 7 x 7 for the response surface);
+    3 speeds x 9 burns; brake power differs up to 1 %, hence 0.5 deg for the identification);
+    airflow_grid: coarse-search points per airflow parameter; airflow_starts / airflow_max_nfev: local
+    least-squares runs and their iteration cap; n_bdur x n_m: identification grid (>= 7 x 7 for the response surface);
     surface: 'spline' (full) or 'cubic' (cheap, coarse grid).
     """
 
@@ -80,7 +80,7 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
     progress : bool
         Progress bars per sweep batch.
     """
-    out = Path(out)
+    out = Path(out).resolve()   # absolute, so the report links its figures relative to itself
     t0 = time.perf_counter()
     out.mkdir(parents=True, exist_ok=True)
     figs = out / "figures"
@@ -137,7 +137,8 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
             "brake_power_err_pct", "pmax_bar", "mirror_wiebe_m", "mirror_rejected_by", "status"]
     sections = [
         ("Airflow matching", [match.summary(), air_tab, figs / "ga_rel_vs_speed.png",
-                              "Parameter correlation matrix (rows/columns in the order " + ", ".join(match.names) + "):",
+                              "Parameter correlation matrix (rows/columns in the order "
+                              + ", ".join(match.names) + "):",
                               pd.DataFrame(match.correlation, columns=list(match.names))]),
         ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
         ("Transmission efficiency", [

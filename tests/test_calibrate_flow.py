@@ -40,6 +40,8 @@ def test_mbc_calibrate_reduced(prefect_api, tmp_path, capsys):
     for f in ("calibration.md", "calibration.html", "eta_sensitivity.parquet", "eta_relation.parquet",
               "figures/ga_rel_vs_speed.png", "figures/plane_wot_9000.png", "figures/eta_relation.png"):
         assert (out / f).is_file(), f
+    md = (out / "calibration.md").read_text()
+    assert "](figures/plane_wot_9000.png)" in md and "](figures/ga_rel_vs_speed.png)" in md
     # every simulation went through the sweep pipeline (resumable parts on disk)
     assert sorted(p.name for p in (out / "sweeps").iterdir())[0] == "airflow-000"
     assert any((out / "sweeps" / "identification-000" / "sweep").glob("part-*.parquet"))

@@ -127,3 +127,24 @@ def test_eta_relation_recovers_paper_eq6():
     for k, v in c.items():
         assert rel[k] == pytest.approx(v, rel=1e-6)
     assert "BDUR10-90 = -93.37 +164.00 eta" in cal.relation_text(rel)
+
+
+@pytest.mark.parametrize("extra,at_mbt,expected", [
+    ({}, True, ["power", "pmax", "ca50"]),
+    ({}, False, ["power", "pmax"]),
+    ({"exhaust_temp_k": 1150.0, "bsfc_g_kwh": 300.0}, False, ["power", "pmax", "exhaust_temp", "bsfc"]),
+    ({"fuel_mass_flow_kg_h": 12.0, "exhaust_temp_k": float("nan")}, True, ["power", "pmax", "ca50", "fuel"]),
+])
+def test_constraint_set_follows_columns_and_mbt_flag(extra, at_mbt, expected):
+    row = pd.Series({"point_id": "x", "brake_power_kw": 40.0, "at_mbt": at_mbt, **extra})
+    assert cal.terms_used(row) == expected
+
+
+def test_bsfc_term_refers_measured_bsfc_to_the_crank(case):
+    bench, sim, res = case
+    # measured BSFC is fuel over the power behind the gearbox: crank BSFC = measured x eta_trans
+    b = bench.drop(columns=["exhaust_temp_k"]).assign(
+        bsfc_g_kwh=sim["bsfc_g_kwh"].to_numpy() / ETA, at_mbt=False)
+    r = cal.identify(b, res, eta_trans=ETA).table.iloc[0]
+    assert r["terms"] == "power,pmax,bsfc"
+    assert abs(r["bsfc_err_pct"]) < 0.3 and abs(r["brake_power_err_pct"]) < 0.3
