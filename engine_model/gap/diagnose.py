@@ -478,10 +478,13 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         match = float(np.sum((q.T @ rp) ** 2) / (rp @ rp)) if rp @ rp > 0 else 0.0
         eff = EFFECTS[c]
         params = {}
+        at_bound = []
         for jj, j in enumerate(cols):
             g, p = lin.columns[j]
             prm = eff.param(p)
             params[p] = (prm.neutral + x[nb + jj] * steps[j], se[jj] * abs(steps[j]))
+            if min(abs(x[nb + jj] - lo[j]), abs(x[nb + jj] - hi[j])) < 1e-6 * max(1.0, abs(x[nb + jj])):
+                at_bound.append(p)
         rows.append({
             "effect": c, "stage": CHAIN_STAGE.get(c, ""),
             "params": "; ".join(f"{p} = {v:.4g} +- {s:.2g}" for p, (v, s) in params.items()),
@@ -490,7 +493,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
             "heldout_gap_rms": math.sqrt(ho / nobs),
             "chi2": chi, "aic": chi + 2 * k, "bic": chi + k * math.log(nobs),
             "delta_aic": (chi + 2 * k) - (chi0 + 2 * k0), "delta_bic": (chi + k * math.log(nobs)) - (chi0 + k0 * math.log(nobs)),
-            "signature_match": match,
+            "signature_match": match, "at_range_bound": ",".join(at_bound),
         })
     rank = pd.DataFrame(rows)
     if len(rank):
@@ -668,6 +671,9 @@ def _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, 
         parts.append(f"The gap is best explained by '{claimed}' ({row['params']}); held-out gap "
                      f"{gap_before:.2f} -> {gap_after:.2f} sigma rms ({reduction:.0f} % of the gap above noise "
                      f"removed), weight {row['weight']:.2f} among the candidates.")
+        if row["at_range_bound"]:
+            parts.append(f"Caution: {row['at_range_bound']} sits at the edge of its documented range, so the "
+                         "data ask for more than the physical effect can give (a larger or a different cause).")
         if len(rank) > 1:
             r2 = rank.iloc[1]
             parts.append(f"Runner-up: '{r2['effect']}' (held-out chi2 {r2['heldout_chi2']:.1f} vs "
