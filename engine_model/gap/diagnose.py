@@ -256,7 +256,9 @@ class GapDiagnosis:
     threshold : float
         Noise-calibrated held-out chi2 improvement a claim must beat.
     base_theta : dict
-        Base parameters after the refit on all points.
+        Base parameters after the refit on all points (base model alone).
+    base_theta_best : dict
+        Base parameters fitted together with the best candidate.
     """
 
     named: str | None
@@ -278,6 +280,7 @@ class GapDiagnosis:
     n_obs: int
     excluded: pd.DataFrame
     best: str | None = None
+    base_theta_best: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
 
     def top(self, k: int = 3) -> list[str]:
@@ -577,6 +580,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         gap_after=gap_after, gap_reduction_pct=reduction, threshold=thr, noise_chi2_q=q_chi2,
                         base_theta={p: lin.theta[p] + delta0[j] for j, (g, p) in enumerate(lin.columns)
                                     if g == "base"},
+                        base_theta_best={p: lin.theta[p] + deltab[j] for j, (g, p) in enumerate(lin.columns)
+                                         if g == "base"},
                         n_points=int(point_valid.sum()), n_obs=int(nobs), excluded=excluded, best=best,
                         extra={"heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
                                "noise_mean_best_improvement": noise_best, "outputs": outputs})
