@@ -683,6 +683,10 @@ def _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, 
             r2 = rank.iloc[1]
             parts.append(f"Runner-up: '{r2['effect']}' (held-out chi2 {r2['heldout_chi2']:.1f} vs "
                          f"{row['heldout_chi2']:.1f}).")
+            close = rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
+            if len(close):
+                parts.append("Not distinguishable from it with these measurements (held-out chi2 within the "
+                             f"noise threshold): {', '.join(close)}.")
     else:
         parts.append(f"{NO_CANDIDATE[0].upper() + NO_CANDIDATE[1:]}.")
         if best is not None:
