@@ -2,7 +2,8 @@
 
 Cost control (2-core CI): a 12-point DOE, three withheld effects at their realistic magnitude, one
 noise seed, a 5-effect candidate library, 2 base-calibration iterations, 1 deg crank steps (the same
-solver for the truth and the model, so the comparison is about physics).  About 350 simulations.
+solver for the truth and the model, so the comparison is about physics).  348 simulations, ~75 s on an
+idle 2-core machine.  Achieved when written: 3/3 named, null and out-of-library case not attributed.
 """
 
 import numpy as np
@@ -46,3 +47,7 @@ def test_benchmark_accuracy_and_null(bench):
     assert null["effect_named"] == "none"
     named = lib[lib["top1_correct"]]
     assert (named["gap_reduction_pct"] >= 50).all(), named
+    # out-of-library VE resonance: not attributed (achieved when written), yet the gap is seen
+    ool = t[t["effect_withheld"] == OOL_EFFECT].iloc[0]
+    assert ool["effect_named"] == "none"
+    assert ool["gap_before"] > null["gap_before"] + 0.5

@@ -108,3 +108,27 @@ def test_apply_effects_composes_with_existing_overrides():
     assert out["spec.losses.combustion_efficiency"].iloc[0] == pytest.approx(0.98 * 0.95 * (1 - 0.03 * 6000 / 9000))
     out = apply_effects(pts, {"restrictor": {"cd_factor": 0.9}}, spec)
     assert out["spec.intake.restrictor_cd"].iloc[0] == pytest.approx(spec.intake.restrictor_cd * 0.9)
+
+
+def test_linearise_matches_the_exact_transmission_sensitivity():
+    """One batch gives the Jacobian; transmission efficiency acts exactly as torque / eta_base."""
+    from engine_model.gap.linear import BaseModel, linearise
+
+    spec = default_spec()
+    pts = pd.DataFrame({"point_id": ["a", "b"], "speed_rpm": [7000.0, 11000.0], "throttle_pct": 100.0,
+                        "spark_deg_btdc": doe.spark_estimate(np.array([7000.0, 11000.0]), 100.0), "lambda": 0.9})
+    lin = linearise(pts, lambda p: simulate(spec, p, SOLVER), BaseModel(params=("bdur_offset_deg",)),
+                    effects=["transmission_efficiency", "friction"], spec=spec)
+    assert lin.ok.all() and lin.n_simulations == 2 * 4   # ref, base step, 2 friction steps; transmission reuses ref
+    k_tq, k_air = lin.outputs.index("brake_torque_nm"), lin.outputs.index("air_mass_flow_kg_h")
+    j = lin.columns.index(("transmission_efficiency", "eta"))
+    np.testing.assert_allclose(lin.jac[:, k_tq, j], lin.y_ref[:, k_tq] / ETA_TRANS_BASE, rtol=1e-9)
+    assert np.all(lin.jac[:, k_air, j] == 0.0)
+    jf = lin.columns.index(("friction", "delta_a_bar"))
+    # +1 bar of constant FMEP costs Vd/(4 pi) * 1e5 N m at the crank, x eta_base at the dyno
+    vd = spec.geometry.total_displacement_m3
+    np.testing.assert_allclose(lin.jac[:, k_tq, jf], -vd * 1e5 / (4 * np.pi) * ETA_TRANS_BASE, rtol=1e-3)
+    jb = lin.columns.index(("base", "bdur_offset_deg"))
+    # a longer burn moves torque and exhaust temperature (the base column is informative)
+    assert np.all(np.abs(lin.jac[:, k_tq, jb]) > 0.05)
+    assert np.all(lin.jac[:, lin.outputs.index("exhaust_temp_k"), jb] > 0)   # later burn, hotter exhaust

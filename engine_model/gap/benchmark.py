@@ -251,7 +251,7 @@ def _verify(plan, lin, truth, diags, names, seeds, ev, spec) -> list[dict]:
             prm = eff.param(p)
             fx[p] = float(np.clip(v, prm.lo, prm.hi))
         fx = check_effects({d.named: fx})
-        pts = lin.base.plan(plan, d.base_theta, spec)
+        pts = lin.base.plan(plan, d.base_theta_best, spec)
         jobs.append((e, d, fx, apply_effects(pts, fx, spec)))
     if not jobs:
         return []

@@ -22,8 +22,8 @@ Steps of :func:`diagnose`:
    base-corrected residual that the candidate's sensitivity pattern spans);
    a candidate is *claimed* only when its held-out improvement beats the
    (1 - alpha) quantile of the best improvement that pure noise produces on
-   the same design (Monte Carlo with the same matrices) AND the held-out
-   residual it leaves is consistent with noise; otherwise the answer is
+   the same design (Monte Carlo with the same matrices) AND it removes at
+   least half of the held-out gap above noise; otherwise the answer is
    "no candidate in the library explains it".
 """
 
@@ -256,7 +256,9 @@ class GapDiagnosis:
     threshold : float
         Noise-calibrated held-out chi2 improvement a claim must beat.
     base_theta : dict
-        Base parameters after the refit on all points.
+        Base parameters after the refit on all points (base model alone).
+    base_theta_best : dict
+        Base parameters fitted together with the best candidate.
     """
 
     named: str | None
@@ -278,6 +280,7 @@ class GapDiagnosis:
     n_obs: int
     excluded: pd.DataFrame
     best: str | None = None
+    base_theta_best: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
 
     def top(self, k: int = 3) -> list[str]:
@@ -354,7 +357,7 @@ def _shape_label(row) -> str:
 def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[str] | None = None,
              uncertainty: dict | None = None, model_error: dict | None = MODEL_ERROR, k_folds: int = 5,
              alpha: float = 0.05, n_noise: int = 200, seed: int = 0, noise_cache: dict | None = None,
-             source: str = "bench") -> GapDiagnosis:
+             min_reduction_pct: float = 50.0, source: str = "bench") -> GapDiagnosis:
     """Diagnose the gap between a bench table and the linearised model.
 
     Parameters
@@ -380,6 +383,11 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         Folds and Monte Carlo seed.
     noise_cache : dict, optional
         Reused between calls with the same design (the benchmark passes one).
+    min_reduction_pct : float
+        A candidate that beats noise must also remove at least this share of the held-out gap above
+        noise to be claimed as the explanation [%].  (An absolute test -- the remaining residual
+        consistent with pure noise -- was tried first and claimed nothing on the 32-point benchmark:
+        the base's own structural misfit keeps every remaining residual above pure noise.)
 
     Returns
     -------
@@ -473,10 +481,13 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         match = float(np.sum((q.T @ rp) ** 2) / (rp @ rp)) if rp @ rp > 0 else 0.0
         eff = EFFECTS[c]
         params = {}
+        at_bound = []
         for jj, j in enumerate(cols):
             g, p = lin.columns[j]
             prm = eff.param(p)
             params[p] = (prm.neutral + x[nb + jj] * steps[j], se[jj] * abs(steps[j]))
+            if min(abs(x[nb + jj] - lo[j]), abs(x[nb + jj] - hi[j])) < 1e-6 * max(1.0, abs(x[nb + jj])):
+                at_bound.append(p)
         rows.append({
             "effect": c, "stage": CHAIN_STAGE.get(c, ""),
             "params": "; ".join(f"{p} = {v:.4g} +- {s:.2g}" for p, (v, s) in params.items()),
@@ -485,7 +496,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
             "heldout_gap_rms": math.sqrt(ho / nobs),
             "chi2": chi, "aic": chi + 2 * k, "bic": chi + k * math.log(nobs),
             "delta_aic": (chi + 2 * k) - (chi0 + 2 * k0), "delta_bic": (chi + k * math.log(nobs)) - (chi0 + k0 * math.log(nobs)),
-            "signature_match": match,
+            "signature_match": match, "at_range_bound": ",".join(at_bound),
         })
     rank = pd.DataFrame(rows)
     if len(rank):
@@ -505,9 +516,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     reduction = float(np.clip(reduction, -999.0, 100.0))
 
     claimed = None
-    if best is not None and rank["heldout_improvement"].iloc[0] > thr:
-        if best_ho <= q_chi2:
-            claimed = best
+    if best is not None and rank["heldout_improvement"].iloc[0] > thr and reduction >= min_reduction_pct:
+        claimed = best
     conf = float(rank["weight"].iloc[0]) if claimed else 0.0
 
     # ---- residual table: base refit on all points, and with the best candidate
@@ -570,6 +580,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         gap_after=gap_after, gap_reduction_pct=reduction, threshold=thr, noise_chi2_q=q_chi2,
                         base_theta={p: lin.theta[p] + delta0[j] for j, (g, p) in enumerate(lin.columns)
                                     if g == "base"},
+                        base_theta_best={p: lin.theta[p] + deltab[j] for j, (g, p) in enumerate(lin.columns)
+                                         if g == "base"},
                         n_points=int(point_valid.sum()), n_obs=int(nobs), excluded=excluded, best=best,
                         extra={"heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
                                "noise_mean_best_improvement": noise_best, "outputs": outputs})
@@ -664,16 +676,23 @@ def _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, 
         parts.append(f"The gap is best explained by '{claimed}' ({row['params']}); held-out gap "
                      f"{gap_before:.2f} -> {gap_after:.2f} sigma rms ({reduction:.0f} % of the gap above noise "
                      f"removed), weight {row['weight']:.2f} among the candidates.")
+        if row["at_range_bound"]:
+            parts.append(f"Caution: {row['at_range_bound']} sits at the edge of its documented range, so the "
+                         "data ask for more than the physical effect can give (a larger or a different cause).")
         if len(rank) > 1:
             r2 = rank.iloc[1]
             parts.append(f"Runner-up: '{r2['effect']}' (held-out chi2 {r2['heldout_chi2']:.1f} vs "
                          f"{row['heldout_chi2']:.1f}).")
+            close = rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
+            if len(close):
+                parts.append("Not distinguishable from it with these measurements (held-out chi2 within the "
+                             f"noise threshold): {', '.join(close)}.")
     else:
         parts.append(f"{NO_CANDIDATE[0].upper() + NO_CANDIDATE[1:]}.")
         if best is not None:
             row = rank.iloc[0]
             why = ("its held-out improvement does not beat noise" if row["heldout_improvement"] <= thr
-                   else "it leaves a held-out residual well above noise")
+                   else f"it removes only {reduction:.0f} % of the held-out gap above noise")
             parts.append(f"Best candidate '{best}' ({row['params']}) reduces the held-out gap "
                          f"{gap_before:.2f} -> {gap_after:.2f} sigma rms, but {why}.")
     if where:

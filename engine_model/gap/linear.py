@@ -281,8 +281,13 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
         for prm in eff.params:
             fx = check_effects({e: {prm.name: prm.realistic}})
             cases.append((e, prm.name, prm.realistic - prm.neutral, apply_effects(ref, fx, spec), fx))
+    # measurement-chain effects do not change the simulation: they reuse the reference rows exactly
+    # (a re-simulation would only add the solver's convergence scatter to the finite difference)
+    resim = [k == 0 or g == "base" or get_effect(g).stage != "measurement" for k, (g, _, _, _, _) in enumerate(cases)]
     frames = []
     for k, (_, _, _, df, _) in enumerate(cases):
+        if not resim[k]:
+            continue
         f = df.copy()
         f["gap_case"] = k
         f["gap_row"] = np.arange(len(f))
@@ -312,7 +317,7 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
     n, o = len(pts), len(outputs)
     ys, oks, stats = [], [], None
     for k, (g, p, step, _, fx) in enumerate(cases):
-        r = res[res["gap_case"] == k].sort_values("gap_row")
+        r = res[res["gap_case"] == (k if resim[k] else 0)].sort_values("gap_row")
         r = model_outputs(r, eta_base)
         if fx is not None:
             r = post_effects(r, fx, eta_base, spec)
