@@ -131,7 +131,9 @@ def angle_tables(spec: EngineSpec, op: OperatingPoint, nstep: int) -> np.ndarray
         # leaves the rest of the mixture unburned (lost efficiency, not a failure).
         xb = wiebe.burn_fraction(a, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
         xb_evo = wiebe.burn_fraction(evo, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
-        tab[L.T_XB] = np.where(a < evo, xb, xb_evo)
+        # combustion efficiency < 1: only that fraction of the charge ever burns
+        # (the rest leaves unburned; spec.losses, neutral 1 in the base model)
+        tab[L.T_XB] = spec.losses.combustion_efficiency * np.where(a < evo, xb, xb_evo)
         ca_end = wiebe.angle_at_fraction(KNOCK_END_FRACTION, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
         tab[L.T_KWIN] = (closed & (a < ca_end)).astype(float)
     v_ivc = kinematics.cylinder_volume(ivc, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
@@ -179,7 +181,10 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     par[L.P_RES_CDA] = it.restrictor_cd * math.pi / 4.0 * it.restrictor_throat_m**2
     par[L.P_RES_REC] = it.restrictor_recovery
     par[L.P_IR_A] = math.pi / 4.0 * it.runner_diameter_m**2
-    par[L.P_IR_L] = it.runner_length_m
+    # The inertance factor scales both terms of the runner momentum equation
+    # (A/L dp and k/(2 rho A L) m|m|), so the steady loss is unchanged and only
+    # the gas inertia (wave tuning of the lumped runner) moves.
+    par[L.P_IR_L] = it.runner_length_m * it.runner_inertance_factor
     # runner loss factor [dynamic heads]: exit (dump) loss of one dynamic head +
     # minor losses + Darcy wall friction f L/D at the cycle-mean runner flow
     m_ref = FRICTION_VE_REF * op.p_amb_pa / (float(gas.r_specific[L.SP_A]) * op.t_amb_k) \

@@ -26,7 +26,7 @@ from .thermo import FuelSpec
 
 __all__ = [
     "Geometry", "ValveSet", "IntakeSpec", "ExhaustSpec", "HeatTransferSpec",
-    "FrictionSpec", "KnockSpec", "InjectorSpec", "AmbientSpec", "EngineSpec",
+    "FrictionSpec", "KnockSpec", "InjectorSpec", "AmbientSpec", "LossSpec", "EngineSpec",
     "load_spec", "default_spec", "DEFAULT_ENGINE",
 ]
 
@@ -233,6 +233,7 @@ class IntakeSpec:
     runner_volume_at_port: float = 0.5
     runner_segments: int = 1
     runner_roughness_m: float = 0.0
+    runner_inertance_factor: float = 1.0
 
     def __post_init__(self):
         o = "intake"
@@ -254,6 +255,7 @@ class IntakeSpec:
         _check(o, "runner_volume_at_port", self.runner_volume_at_port, 0.0, 1.0)
         _check_segments(o, self.runner_segments)
         _check(o, "runner_roughness_m", self.runner_roughness_m, 0.0, 0.1 * self.runner_diameter_m)
+        _check(o, "runner_inertance_factor", self.runner_inertance_factor, 0.05, 5.0)
 
 
 @dataclass(frozen=True)
@@ -398,6 +400,29 @@ class AmbientSpec:
 
 
 @dataclass(frozen=True)
+class LossSpec:
+    """Losses the base model leaves out; neutral defaults (the gap-diagnosis library switches them on).
+
+    Parameters
+    ----------
+    combustion_efficiency : float
+        Fraction of the trapped fuel that burns [-]: the Wiebe burned fraction
+        is scaled by it, the rest of the fresh mixture leaves unburned with the
+        exhaust (incomplete combustion, crevice and blow-by losses of charge
+        energy).  1 = complete combustion (the base assumption).  Heywood
+        (Internal Combustion Engine Fundamentals, 1988, sec. 4.9.4) gives
+        0.95-0.98 for SI engines at lambda <= 1... 1.1 (rich mixtures burn
+        less completely; the lambda effect is in the kernel's equilibrium-free
+        product model already, this factor is what is left).
+    """
+
+    combustion_efficiency: float = 1.0
+
+    def __post_init__(self):
+        _check("losses", "combustion_efficiency", self.combustion_efficiency, 0.5, 1.0)
+
+
+@dataclass(frozen=True)
 class EngineSpec:
     """A whole engine: geometry, valve train, intake, exhaust and sub-model constants (SI)."""
 
@@ -413,6 +438,7 @@ class EngineSpec:
     knock: KnockSpec
     injector: InjectorSpec
     ambient: AmbientSpec
+    losses: LossSpec = field(default_factory=LossSpec)
     sources: dict = field(default_factory=dict, compare=False, hash=False, repr=False)
 
     def __post_init__(self):
@@ -527,6 +553,7 @@ def spec_from_dict(doc: dict, path="<dict>") -> EngineSpec:
             knock=KnockSpec(**_section(doc, "knock", path)),
             injector=InjectorSpec(**_section(doc, "injector", path)),
             ambient=AmbientSpec(**_section(doc, "ambient", path)),
+            losses=LossSpec(**dict(doc.get("losses", {}))),
             sources=dict(doc.get("sources", {})),
         )
     except TypeError as exc:  # unknown or missing key in a section
