@@ -6,7 +6,10 @@ Figures printed:
 - milliseconds per converged operating point from a cold start, median over
   >= 50 points spread over throttle, speed and spark;
 - milliseconds per point inside a Wiebe sweep at one operating point, where
-  consecutive points start from the previous converged gas-exchange state.
+  consecutive points start from the previous converged gas-exchange state;
+- cycles to converge, and the largest deviation of the converged answer
+  (trapped mass, net IMEP) from the long-run periodic solution (150 plain
+  cycles) on a subset of the points of both parts.
 
 Run: ``make bench`` or ``.venv/bin/python benchmarks/bench_cycle.py [--points N]``.
 Single core: numba kernels are serial; set NUMBA_NUM_THREADS=1 for certainty.
@@ -43,19 +46,35 @@ def _compile_time(cache_dir: str) -> tuple[float, float]:
     return imp, first
 
 
+def _deviation(spec, solver, ops, rows) -> tuple[float, float]:
+    """Largest relative deviation of trapped mass and net IMEP from 150 plain cycles (the periodic solution)."""
+    from engine_model import SolverSettings, simulate_point
+    long = SolverSettings(step_deg=solver.step_deg, max_cycles=150, min_cycles=150, accelerate=False)
+    dm = dw = 0.0
+    for op, row in zip(ops, rows):
+        ref, _ = simulate_point(spec, op, long)
+        dm = max(dm, abs(row["trapped_mass_mg"] / ref["trapped_mass_mg"] - 1.0))
+        dw = max(dw, abs(row["imep_net_bar"] / ref["imep_net_bar"] - 1.0))
+    return dm, dw
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=60, help="operating points for the cold-start median (>= 50)")
     ap.add_argument("--sweep", type=int, default=49, help="points of the Wiebe sweep (7 x 7 by default)")
+    ap.add_argument("--check", type=int, default=12, help="points of each part checked against a 150-cycle run")
+    ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
     args = ap.parse_args(argv)
 
-    with tempfile.TemporaryDirectory() as cache:
-        imp_c, cold = _compile_time(cache)
-        imp_w, warm = _compile_time(cache)
-    print("numba compile + first point (subprocess, fresh cache):  "
-          f"{cold:6.2f} s   (import {imp_c:.2f} s)")
-    print("cached load + first point   (subprocess, warm cache):   "
-          f"{warm:6.2f} s   (import {imp_w:.2f} s)")
+    print(f"load average at start: {os.getloadavg()[0]:.2f}")
+    if not args.no_compile:
+        with tempfile.TemporaryDirectory() as cache:
+            imp_c, cold = _compile_time(cache)
+            imp_w, warm = _compile_time(cache)
+        print("numba compile + first point (subprocess, fresh cache):  "
+              f"{cold:6.2f} s   (import {imp_c:.2f} s)")
+        print("cached load + first point   (subprocess, warm cache):   "
+              f"{warm:6.2f} s   (import {imp_w:.2f} s)")
 
     from engine_model import OperatingPoint, SolverSettings, default_spec, simulate, simulate_point
 
@@ -68,7 +87,7 @@ def main(argv=None) -> int:
     speeds = rng.uniform(3000.0, 13000.0, n)
     throttles = rng.uniform(20.0, 100.0, n)
     sparks = rng.uniform(20.0, 50.0, n)
-    t_point, cycles, n_bad = [], [], 0
+    t_point, cycles, n_bad, ops, rows = [], [], 0, [], []
     for sp, th, sa in zip(speeds, throttles, sparks):
         op = OperatingPoint(float(sp), float(th), float(sa), 0.9 if th > 90 else 1.0, 24.0, 6.4)
         t0 = time.perf_counter()
@@ -76,6 +95,8 @@ def main(argv=None) -> int:
         t_point.append(time.perf_counter() - t0)
         cycles.append(row["cycles_run"])
         n_bad += not row["converged"]
+        ops.append(op)
+        rows.append(row)
     t_point = np.array(t_point)
     cycles = np.array(cycles)
     per_cycle = t_point / cycles
@@ -88,6 +109,9 @@ def main(argv=None) -> int:
           f"   not converged {n_bad}")
     print(f"  per converged point (cold):   median {np.median(t_point) * 1e3:7.1f} ms"
           f"   p90 {np.percentile(t_point, 90) * 1e3:.1f} ms")
+    dev = _deviation(spec, solver, ops[:args.check], rows[:args.check])
+    print(f"  max deviation from the 150-cycle answer ({args.check} points): "
+          f"trapped mass {dev[0] * 100:.3f} %, net IMEP {dev[1] * 100:.3f} %")
 
     k = int(round(np.sqrt(args.sweep)))
     grid = [(b, m) for b in np.linspace(20.0, 50.0, k) for m in np.linspace(2.0, 8.0, k)]
@@ -98,7 +122,14 @@ def main(argv=None) -> int:
     el = time.perf_counter() - t0
     print(f"\nWiebe sweep at 9000 rpm WOT, {len(sweep)} points (BDUR10-90 20..50 x m 2..8), warm state reused:")
     print(f"  per point:                    mean {el / len(sweep) * 1e3:7.1f} ms"
-          f"   median cycles {res['cycles_run'].median():.0f}   not converged {int((~res['converged']).sum())}")
+          f"   median cycles {res['cycles_run'].median():.0f}   max {res['cycles_run'].max()}"
+          f"   not converged {int((~res['converged']).sum())}")
+    sops = [OperatingPoint(9000.0, 100.0, 50.0, 0.9, float(b), float(m)) for b, m in grid]
+    idx = np.linspace(0, len(sops) - 1, min(args.check, len(sops))).astype(int)
+    dev = _deviation(spec, solver, [sops[i] for i in idx], [res.iloc[i] for i in idx])
+    print(f"  max deviation from the 150-cycle answer ({len(idx)} points): "
+          f"trapped mass {dev[0] * 100:.3f} %, net IMEP {dev[1] * 100:.3f} %")
+    print(f"load average at end: {os.getloadavg()[0]:.2f}")
     return 0
 
 

@@ -17,9 +17,11 @@ from .spec import EngineSpec
 GAMMA_MOTORED = 1.35       # polytropic exponent of the Woschni motored-pressure reference (Woschni 1967 uses a polytrope)
 # MPE acceleration of the cycle iteration (``cycle/accel.py``): modes removed per
 # extrapolation and the first cycle whose end state enters the window.  Chosen on
-# 12 points spread over the map (benchmarks/bench_cycle.py): k = 3 after 3 warm-up
-# cycles needed the fewest cycles for a result within 0.1 % of the 250-cycle answer.
-ACCEL_MODES = 3
+# 12 points spread over the map against their 250-cycle answers: median cycles
+# for k = 2, 3, 4, 5 after 3 warm-up cycles were 24.5, 21, 17, 19 (all within
+# 0.025 % of the periodic solution), and 19, 17, 16, 19 per row in the 7 x 7
+# Wiebe sweep of benchmarks/bench_cycle.py.
+ACCEL_MODES = 4
 ACCEL_WARMUP = 3
 KNOCK_END_FRACTION = 0.99  # end gas counted as consumed at 99 % burned
 # Runner wall friction is evaluated at the cycle-mean flow of one runner; the
@@ -51,7 +53,7 @@ class SolverSettings:
         itself below the tolerance.
     accelerate : bool
         Extrapolate the slow cycle-to-cycle modes (minimal polynomial
-        extrapolation over the last five end-of-cycle states, see
+        extrapolation over the last six end-of-cycle states, see
         ``cycle/accel.py``); the periodic solution is unchanged, only fewer
         cycles are needed.
     """

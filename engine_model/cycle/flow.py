@@ -17,6 +17,11 @@ from numba import njit
 from .layout import FASTMATH
 
 
+# Every gas here has gamma >= 1.05, whose critical pressure ratio is <= 0.595:
+# above this ratio the flow is subsonic without evaluating the critical ratio.
+SUBSONIC_ABOVE = 0.6
+
+
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def critical_pressure_ratio(gamma):
     """Throat-to-stagnation pressure ratio at sonic flow, (2/(g+1))^(g/(g-1)) [-]."""
@@ -213,11 +218,14 @@ def orifice_flow_lin(cda, p_up, t_up, r_up, gamma, p_throat, eps):
         if pr >= 1.0:
             return 0.0, g, -g
         return g * (p_up - p_throat), g, -g
-    prc = critical_pressure_ratio(gamma)
-    if pr <= prc:
-        t = prc ** (1.0 / gamma)
-        psi = math.sqrt(2.0 * gamma / (gamma - 1.0) * (t * t - prc * t))
-        return k * p_up * psi, k * psi, 0.0
+    if pr <= SUBSONIC_ABOVE:
+        # choked flow needs one power: with c = (2/(g+1))^(1/(g-1)), the critical
+        # ratio is 2c/(g+1) and psi* = c*sqrt(2g/(g+1)) (same law, fewer pow calls)
+        c = (2.0 / (gamma + 1.0)) ** (1.0 / (gamma - 1.0))
+        prc = 2.0 * c / (gamma + 1.0)
+        if pr <= prc:
+            psi = c * math.sqrt(2.0 * gamma / (gamma + 1.0))
+            return k * p_up * psi, k * psi, 0.0
     t = pr ** (1.0 / gamma)
     psi = math.sqrt(2.0 * gamma / (gamma - 1.0) * (t * t - pr * t))
     dpsi = (2.0 * t * t / pr - (gamma + 1.0) * t) / ((gamma - 1.0) * psi)

@@ -29,17 +29,18 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         m = ma + mm + mp
         if not (m > 0.0):
             return 200 + k
-        ya = ma / m
-        ym = mm / m
-        yp = mp / m
-        t, cp, h, r = mixture_tcphr(coeffs, rsp, ya, ym, yp, vol[k, V_U] / m, vol[k, V_T])
+        inv_m = 1.0 / m
+        ya = ma * inv_m
+        ym = mm * inv_m
+        yp = mp * inv_m
+        t, cp, h, r = mixture_tcphr(coeffs, rsp, ya, ym, yp, vol[k, V_U] * inv_m, vol[k, V_T])
         if not (t > 150.0 and t < 4400.0):
             return 100 + k
         vol[k, V_T] = t
-        v = vcur[k]
-        p = m * r * t / v
+        inv_v = 1.0 / vcur[k]
+        rt = r * t
         g = cp / (cp - r)
-        props[k, PR_P] = p
+        props[k, PR_P] = m * rt * inv_v
         props[k, PR_T] = t
         props[k, PR_R] = r
         props[k, PR_G] = g
@@ -47,8 +48,8 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         props[k, PR_YA] = ya
         props[k, PR_YM] = ym
         props[k, PR_YP] = yp
-        props[k, PR_RHO] = m / v
-        props[k, PR_S] = g * r * t / v
+        props[k, PR_RHO] = m * inv_v
+        props[k, PR_S] = g * rt * inv_v
     return 0
 
 
