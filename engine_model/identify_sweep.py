@@ -46,7 +46,7 @@ from . import doe, wiebe
 from .identify import CHI2_95_2DOF, Tolerances, chi2_terms, point_surfaces, terms_used
 
 __all__ = ["DEFAULT_OFFSETS", "MBT_SPARK_SIGMA_DEG", "choose_operating_points", "sweep_plan", "measured_mbt",
-           "identify_sweeps", "SWEEP_COLUMNS"]
+           "identify_sweeps", "identify_sweeps_refined", "SWEEP_COLUMNS"]
 
 #: Spark offsets from the MBT prior [deg]; the prior is ~ +-3 deg from the engine's MBT, so -15..+5 brackets it.
 DEFAULT_OFFSETS = (-15.0, -10.0, -5.0, 0.0, 5.0)
@@ -190,7 +190,7 @@ def _check_inputs(meas: pd.DataFrame, results: pd.DataFrame) -> None:
 
 def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95,
                     tol: Tolerances = Tolerances(), surface: str = "spline", use_mbt: bool = True,
-                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG) -> pd.DataFrame:
+                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG, terms: Sequence[str] | None = None) -> pd.DataFrame:
     """Joint (BDUR10-90, m) per spark sweep.
 
     Parameters
@@ -208,6 +208,9 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
         Add the CA50-at-MBT term where the sweep brackets MBT.
     mbt_spark_sigma_deg : float
         MBT spark uncertainty [deg], added in quadrature to ``tol.ca50_sigma_deg`` for that term.
+    terms : sequence of str, optional
+        Per-point chi2 terms to use (subset of ``power, pmax, exhaust_temp, bsfc, fuel, air``); default
+        :func:`engine_model.identify.terms_used` of each row.
 
     Returns
     -------
@@ -249,8 +252,8 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
             elif ps.fine["brake_power_kw"].shape != shape or not (np.allclose(ps.fine_b, fb) and np.allclose(ps.fine_m, fm)):
                 raise ValueError(f"identify_sweeps: op_id {oid!r}, point {row['point_id']!r}: its (BDUR10-90, m) "
                                  "grid differs from the sweep's other points; use one identification_plan grid")
-            terms = terms_used(row)
-            parts = chi2_terms(ps, eta_trans, tol, terms)
+            use = [t for t in terms_used(row) if terms is None or t in terms]
+            parts = chi2_terms(ps, eta_trans, tol, use)
             for k, v in parts.items():
                 parts_sum[k] = parts_sum.get(k, 0.0) + v
             c = sum(parts.values())
@@ -295,3 +298,69 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
         if c not in table.columns:
             table[c] = np.nan
     return table[list(SWEEP_COLUMNS) + [c for c in table.columns if c not in SWEEP_COLUMNS]]
+
+
+def identify_sweeps_refined(meas: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFrame],
+                            overrides: dict | None = None, grid: tuple = (6, 6), refine_grid: tuple = (5, 5),
+                            results: pd.DataFrame | None = None, eta_trans: float = 0.95,
+                            tol: Tolerances = Tolerances(), surface: str = "spline", **kwargs) -> pd.DataFrame:
+    """:func:`identify_sweeps` on the coarse plane, then again on a local grid around each sweep's optimum.
+
+    The coarse (BDUR10-90, m) grid over the paper's plane interpolates exhaust temperature and fuel flow
+    only to tens of K / a few %, more than the bench's noise; the second stage simulates a
+    ``refine_grid`` over the stage-1 95 % region widened by one coarse grid spacing on each side
+    (clipped to the plane) and identifies again there.
+
+    Parameters
+    ----------
+    meas : DataFrame
+        Bench rows of :func:`sweep_plan` (all statuses).
+    evaluate : callable(plan) -> results
+        Simulates an :func:`engine_model.identify.identification_plan` (one row per plan row, same order).
+    overrides : dict, optional
+        Spec overrides (``{"spec.<section>.<field>": value}``), as for ``identification_plan``.
+    grid, refine_grid : (n_bdur, n_m)
+        Coarse and local grid sizes.
+    results : DataFrame, optional
+        Already simulated coarse-grid results (skips the first evaluation).
+    eta_trans, tol, surface, **kwargs
+        As :func:`identify_sweeps`.
+
+    Returns
+    -------
+    DataFrame
+        As :func:`identify_sweeps`, plus ``refined`` (bool), ``bdur_10_90_deg_coarse`` and ``wiebe_m_coarse``.
+    """
+    from .identify import BDUR_RANGE_DEG, M_RANGE, identification_plan
+    ok = meas[meas["status"] == "ok"].reset_index(drop=True)
+    if results is None:
+        results = evaluate(identification_plan(ok, overrides, *grid))
+    t1 = identify_sweeps(meas, results, eta_trans, tol, surface, **kwargs)
+    db = (BDUR_RANGE_DEG[1] - BDUR_RANGE_DEG[0]) / (grid[0] - 1)
+    dm = (M_RANGE[1] - M_RANGE[0]) / (grid[1] - 1)
+    plans, todo = [], []
+    for r in t1.itertuples():
+        if not math.isfinite(r.bdur_10_90_deg):
+            continue
+        br = (max(BDUR_RANGE_DEG[0], r.bdur_10_90_deg_lo - db), min(BDUR_RANGE_DEG[1], r.bdur_10_90_deg_hi + db))
+        mr = (max(M_RANGE[0], r.wiebe_m_lo - dm), min(M_RANGE[1], r.wiebe_m_hi + dm))
+        plans.append(identification_plan(ok[ok["op_id"] == r.op_id], overrides, *refine_grid, br, mr))
+        todo.append(r.op_id)
+    t1 = t1.assign(refined=False, bdur_10_90_deg_coarse=t1["bdur_10_90_deg"], wiebe_m_coarse=t1["wiebe_m"])
+    if not todo:
+        return t1
+    plan2 = pd.concat(plans, ignore_index=True)
+    res2 = evaluate(plan2)
+    if len(res2) != len(plan2):
+        raise ValueError(f"identify_sweeps_refined: evaluate returned {len(res2)} rows for {len(plan2)} plan rows")
+    res2 = res2.reset_index(drop=True)
+    res2["bench_point_id"] = plan2["bench_point_id"].to_numpy()
+    sub = meas[meas["op_id"].isin(todo)]
+    t2 = identify_sweeps(sub, res2, eta_trans, tol, surface, **kwargs).set_index("op_id")
+    rows = []
+    for r in t1.to_dict("records"):
+        if r["op_id"] in t2.index:
+            new = t2.loc[r["op_id"]].to_dict()
+            r = {**r, **new, "op_id": r["op_id"], "refined": True}
+        rows.append(r)
+    return pd.DataFrame(rows)[list(t1.columns) + [c for c in t2.columns if c not in t1.columns]]
