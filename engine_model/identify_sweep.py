@@ -54,6 +54,11 @@ DEFAULT_OFFSETS = (-15.0, -10.0, -5.0, 0.0, 5.0)
 #: noise: near MBT torque falls ~0.5-1 % at 5 deg off, so the vertex moves by ~1-2 deg per noise sigma.
 MBT_SPARK_SIGMA_DEG = 1.5
 
+#: Candidate relative spark slopes [1/deg] of (BDUR10-90, m): 0 to 0.8 %/deg.  [H] sec. 9.3: burn angles grow
+#: with spark advance (colder, thinner charge at the spark); a constant-parameter fit is biased because power
+#: at retarded spark is very sensitive to the burn (see the module docstring), so the slope is profiled.
+SPARK_SLOPES = tuple((kb, km) for kb in (0.0, 0.002, 0.004, 0.006, 0.008) for km in (0.0, 0.002, 0.004, 0.006))
+
 #: Result columns of :func:`identify_sweeps` (in this order, then diagnostics).
 SWEEP_COLUMNS = ("op_id", "throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m",
                  "bdur_10_90_deg_lo", "bdur_10_90_deg_hi", "wiebe_m_lo", "wiebe_m_hi", "chi2_min", "n_points",
@@ -167,6 +172,22 @@ def measured_mbt(sweep: pd.DataFrame) -> tuple[float, str]:
     return float(np.clip(v, x[0], x[2])), "ok"
 
 
+def _shifted_index(fb, fm, B, M):
+    """Fractional fine-mesh indices of (B, M), clipped to the mesh (edge values extend outwards)."""
+    ib = np.clip((B - fb[0]) / (fb[1] - fb[0]), 0, len(fb) - 1)
+    jm = np.clip((M - fm[0]) / (fm[1] - fm[0]), 0, len(fm) - 1)
+    return ib, jm
+
+
+def _lookup(v, ib, jm):
+    """Bilinear interpolation of a fine-mesh field at fractional indices."""
+    i0 = np.minimum(np.floor(ib).astype(int), v.shape[0] - 2)
+    j0 = np.minimum(np.floor(jm).astype(int), v.shape[1] - 2)
+    di, dj = ib - i0, jm - j0
+    return ((1 - di) * (1 - dj) * v[i0, j0] + di * (1 - dj) * v[i0 + 1, j0]
+            + (1 - di) * dj * v[i0, j0 + 1] + di * dj * v[i0 + 1, j0 + 1])
+
+
 def _check_inputs(meas: pd.DataFrame, results: pd.DataFrame) -> None:
     need = ("point_id", "op_id", "throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda", "status", "brake_torque_nm")
     miss = [c for c in need if c not in meas.columns]
@@ -190,7 +211,8 @@ def _check_inputs(meas: pd.DataFrame, results: pd.DataFrame) -> None:
 
 def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95,
                     tol: Tolerances = Tolerances(), surface: str = "spline", use_mbt: bool = True,
-                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG, terms: Sequence[str] | None = None) -> pd.DataFrame:
+                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG, terms: Sequence[str] | None = None,
+                    spark_slopes: Sequence[tuple] = SPARK_SLOPES) -> pd.DataFrame:
     """Joint (BDUR10-90, m) per spark sweep.
 
     Parameters
@@ -211,6 +233,10 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
     terms : sequence of str, optional
         Per-point chi2 terms to use (subset of ``power, pmax, exhaust_temp, bsfc, fuel, air``); default
         :func:`engine_model.identify.terms_used` of each row.
+    spark_slopes : sequence of (kb, km)
+        Candidate relative spark slopes [1/deg] of BDUR10-90 and m: a point at spark ``s`` burns with
+        ``(b (1 + kb (s - s_mean)), m (1 + km (s - s_mean)))``; the pair with the lowest chi2 is used
+        (profile over :data:`SPARK_SLOPES`; ``[(0, 0)]`` = constant parameters).
 
     Returns
     -------
@@ -242,7 +268,8 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
                         "status": f"skipped: {len(ok)} runnable spark(s) of {len(g)} "
                                   f"({g['status'].value_counts().to_dict()})"})
             continue
-        total, parts_sum, resid, shape = None, {}, [], None
+        s_mean = base["spark_deg_btdc"]
+        pts, shape = [], None
         for _, row in ok.iterrows():
             row = row.copy()
             row["at_mbt"] = False
@@ -253,36 +280,46 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
                 raise ValueError(f"identify_sweeps: op_id {oid!r}, point {row['point_id']!r}: its (BDUR10-90, m) "
                                  "grid differs from the sweep's other points; use one identification_plan grid")
             use = [t for t in terms_used(row) if terms is None or t in terms]
-            parts = chi2_terms(ps, eta_trans, tol, use)
-            for k, v in parts.items():
-                parts_sum[k] = parts_sum.get(k, 0.0) + v
-            c = sum(parts.values())
-            total = c if total is None else total + c
-            resid.append((row, ps))
+            pts.append((row, ps, chi2_terms(ps, eta_trans, tol, use), float(row["spark_deg_btdc"]) - s_mean))
+        FB, FM = np.meshgrid(fb, fm, indexing="ij")
         mbt_used = bool(use_mbt and math.isfinite(mbt))
-        if mbt_used:
-            FB, FM = np.meshgrid(fb, fm, indexing="ij")
-            ca50 = wiebe.burn_angles(mbt, FB, FM)["ca50_deg_atdc"]
-            sig = math.hypot(tol.ca50_sigma_deg, mbt_spark_sigma_deg)
-            parts_sum["ca50"] = ((ca50 - tol.ca50_target_deg) / sig) ** 2
-            total = total + parts_sum["ca50"]
-        chi2 = np.where(np.isfinite(total), total, np.inf)
+        best = None
+        for kb, km in spark_slopes:
+            total, parts_sum, idx = 0.0, {}, []
+            for row, ps, parts, ds in pts:
+                ib, jm = _shifted_index(fb, fm, FB * (1 + kb * ds), FM * (1 + km * ds))
+                idx.append((ib, jm))
+                for k, v in parts.items():
+                    vv = _lookup(v, ib, jm)
+                    parts_sum[k] = parts_sum.get(k, 0.0) + vv
+                    total = total + vv
+            if mbt_used:
+                ds = mbt - s_mean
+                ca50 = wiebe.burn_angles(mbt, FB * (1 + kb * ds), FM * (1 + km * ds))["ca50_deg_atdc"]
+                sig = math.hypot(tol.ca50_sigma_deg, mbt_spark_sigma_deg)
+                parts_sum["ca50"] = ((ca50 - tol.ca50_target_deg) / sig) ** 2
+                total = total + parts_sum["ca50"]
+            chi2 = np.where(np.isfinite(total), total, np.inf)
+            c = float(chi2.min())
+            if best is None or c < best[0]:
+                best = (c, chi2, parts_sum, idx, (kb, km))
+        cmin, chi2, parts_sum, idx, (kb, km) = best
         i, j = np.unravel_index(int(np.argmin(chi2)), chi2.shape)
-        cmin = float(chi2[i, j])
         ri, rj = np.nonzero(chi2 <= cmin + CHI2_95_2DOF)
-        # tolerance check at the joint optimum, point by point
+        # tolerance check at the joint optimum, point by point (at each point's own shifted parameters)
         bad = []
-        for row, ps in resid:
+        for (row, ps, _, _), (ib, jm) in zip(pts, idx):
+            a, b_ = np.round(ib[i, j]).astype(int), np.round(jm[i, j]).astype(int)
             target = float(row["brake_power_kw"]) / eta_trans
-            perr = ps.fine["brake_power_kw"][i, j] / target - 1.0
+            perr = ps.fine["brake_power_kw"][a, b_] / target - 1.0
             if abs(perr) > tol.power_rel:
                 bad.append(f"{row['point_id']} power {100 * perr:+.1f} %")
             if pd.notna(row.get("exhaust_temp_k")):
-                terr = ps.fine["exhaust_temp_k"][i, j] - float(row["exhaust_temp_k"])
+                terr = ps.fine["exhaust_temp_k"][a, b_] - float(row["exhaust_temp_k"])
                 if abs(terr) > tol.exhaust_temp_k:
                     bad.append(f"{row['point_id']} exhaust T {terr:+.0f} K")
-        # a 1-sigma tolerance is missed by ~1/3 of honest points; the sweep fails if more than half miss
-        n_chk = len(resid) * (2 if "exhaust_temp_k" in ok.columns else 1)
+        # a 1-sigma tolerance is missed by ~1/3 of honest readings; the sweep fails if more than half miss
+        n_chk = len(pts) * (2 if "exhaust_temp_k" in ok.columns else 1)
         fit_ok = len(bad) <= n_chk // 2
         status = "ok" if fit_ok else "tolerance missed: " + "; ".join(bad)
         if why != "ok":
@@ -292,6 +329,7 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
                     "bdur_10_90_deg_lo": float(fb[ri.min()]), "bdur_10_90_deg_hi": float(fb[ri.max()]),
                     "wiebe_m_lo": float(fm[rj.min()]), "wiebe_m_hi": float(fm[rj.max()]), "chi2_min": cmin,
                     "mbt_used": mbt_used, "fit_ok": bool(fit_ok), "status": status, "region_at_edge": edge,
+                    "bdur_spark_slope_per_deg": kb, "m_spark_slope_per_deg": km,
                     "terms": ",".join(parts_sum), **{f"chi2_{k}": float(v[i, j]) for k, v in parts_sum.items()}})
     table = pd.DataFrame(out)
     for c in SWEEP_COLUMNS:
