@@ -45,7 +45,7 @@ import pandas as pd
 from . import doe, wiebe
 from .identify import CHI2_95_2DOF, Tolerances, chi2_terms, point_surfaces, terms_used
 
-__all__ = ["DEFAULT_OFFSETS", "MBT_SPARK_SIGMA_DEG", "choose_operating_points", "sweep_plan", "measured_mbt",
+__all__ = ["DEFAULT_OFFSETS", "DEFAULT_TERMS", "SPARK_SLOPES", "MBT_SPARK_SIGMA_DEG", "choose_operating_points", "sweep_plan", "measured_mbt",
            "identify_sweeps", "identify_sweeps_refined", "SWEEP_COLUMNS"]
 
 #: Spark offsets from the MBT prior [deg]; the prior is ~ +-3 deg from the engine's MBT, so -15..+5 brackets it.
@@ -53,6 +53,12 @@ DEFAULT_OFFSETS = (-15.0, -10.0, -5.0, 0.0, 5.0)
 #: [A] 1-sigma uncertainty of the MBT spark from a parabola through 3 sparks 5 deg apart with 0.5 % torque
 #: noise: near MBT torque falls ~0.5-1 % at 5 deg off, so the vertex moves by ~1-2 deg per noise sigma.
 MBT_SPARK_SIGMA_DEG = 1.5
+
+#: Per-point terms used by default.  BSFC and fuel flow carry no combustion information beyond power (fuel
+#: follows the air at fixed lambda); on a coarse (BDUR10-90, m) grid their surfaces are less accurate than
+#: the 1 % meter, and adding them raised the BDUR10-90 RMSE from 1.7 to 3.1 deg on the 6-point case of
+#: docs/sections/identify_sweep.md.
+DEFAULT_TERMS = ("power", "pmax", "exhaust_temp")
 
 #: Candidate relative spark slopes [1/deg] of (BDUR10-90, m): 0 to 0.8 %/deg.  [H] sec. 9.3: burn angles grow
 #: with spark advance (colder, thinner charge at the spark); a constant-parameter fit is biased because power
@@ -211,7 +217,7 @@ def _check_inputs(meas: pd.DataFrame, results: pd.DataFrame) -> None:
 
 def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95,
                     tol: Tolerances = Tolerances(), surface: str = "spline", use_mbt: bool = True,
-                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG, terms: Sequence[str] | None = None,
+                    mbt_spark_sigma_deg: float = MBT_SPARK_SIGMA_DEG, terms: Sequence[str] | None = DEFAULT_TERMS,
                     spark_slopes: Sequence[tuple] = SPARK_SLOPES) -> pd.DataFrame:
     """Joint (BDUR10-90, m) per spark sweep.
 
@@ -230,9 +236,10 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
         Add the CA50-at-MBT term where the sweep brackets MBT.
     mbt_spark_sigma_deg : float
         MBT spark uncertainty [deg], added in quadrature to ``tol.ca50_sigma_deg`` for that term.
-    terms : sequence of str, optional
-        Per-point chi2 terms to use (subset of ``power, pmax, exhaust_temp, bsfc, fuel, air``); default
-        :func:`engine_model.identify.terms_used` of each row.
+    terms : sequence of str or None
+        Per-point chi2 terms to use where the row has the channel (subset of ``power, pmax, exhaust_temp,
+        bsfc, fuel, air``); default :data:`DEFAULT_TERMS`; None = all of
+        :func:`engine_model.identify.terms_used`.
     spark_slopes : sequence of (kb, km)
         Candidate relative spark slopes [1/deg] of BDUR10-90 and m: a point at spark ``s`` burns with
         ``(b (1 + kb (s - s_mean)), m (1 + km (s - s_mean)))``; the pair with the lowest chi2 is used
