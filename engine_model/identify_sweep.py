@@ -22,14 +22,18 @@ procedure is a spark sweep per (throttle, speed); this module uses it:
   spark found by a parabola through the three highest-torque sparks; its sigma
   is widened by the MBT-spark uncertainty (:data:`MBT_SPARK_SIGMA_DEG`).
 
-Constant parameters across the sweep: the hidden law of the virtual bench
-(:class:`engine_model.burnlaw.BurnLaw`, advanced spark fires into colder gas,
-[H] sec. 9.3) moves BDUR10-90 by +-2.9 to +-5.2 % and m by 0 to +-3.4 % over a
--15..+5 deg sweep around the MBT prior (measured on the map throttle 10-100 %,
-speed 3000-12000 rpm, ``BurnLaw().predict``; e.g. WOT 9000 rpm 22.9 -> 25.1 deg,
-m 5.92 -> 6.32).  That is +-1 deg of BDUR10-90 at most, well below the per-point
-errors this replaces; the identified values are compared with the law at the
-sweep's mean spark.
+Spark dependence of the burn: the hidden law of the virtual bench
+(:class:`engine_model.burnlaw.BurnLaw`; advanced spark fires into colder, thinner gas and burns longer,
+[H] sec. 9.3) moves BDUR10-90 by +-2.9 to +-5.2 % and m by 0 to +-3.4 % over a -15..+5 deg sweep around
+the MBT prior (measured with ``BurnLaw().predict`` on throttle 10-100 %, speed 3000-12000 rpm; e.g. WOT
+9000 rpm: 22.9 -> 25.1 deg, m 5.92 -> 6.32), i.e. 0.3-0.5 %/deg.  Small as it is, holding the parameters
+constant is *not* good enough: at retarded spark brake power is so sensitive to the burn that the law's
+own 0.5 deg / 0.1 change between neighbouring sparks moves power by ~2.7 % (60 % throttle, 9000 rpm,
+cycle model), more than the 1 % tolerance, and the constant-parameter fit drifts to long, low-m burns
+(BDUR10-90 RMSE 10.5 deg on the 6-point case of docs/sections/identify_sweep.md).  Each point therefore
+burns with ``(b (1 + kb ds), m (1 + km ds))``, ``ds`` = its spark minus the sweep's mean spark, and the
+relative slopes (kb, km) are profiled over :data:`SPARK_SLOPES` (0-0.8 %/deg each; chi2 minimum over the
+candidates).  Reported (BDUR10-90, m) are those at the sweep's mean spark.
 
 [P] Mrda et al., MVM2012-024.  [H] Heywood, ICE Fundamentals, 1988.
 """
@@ -46,7 +50,7 @@ from . import doe, wiebe
 from .identify import CHI2_95_2DOF, Tolerances, chi2_terms, point_surfaces, terms_used
 
 __all__ = ["DEFAULT_OFFSETS", "DEFAULT_TERMS", "SPARK_SLOPES", "MBT_SPARK_SIGMA_DEG", "choose_operating_points", "sweep_plan", "measured_mbt",
-           "identify_sweeps", "identify_sweeps_refined", "SWEEP_COLUMNS"]
+           "identify_sweeps", "SWEEP_COLUMNS"]
 
 #: Spark offsets from the MBT prior [deg]; the prior is ~ +-3 deg from the engine's MBT, so -15..+5 brackets it.
 DEFAULT_OFFSETS = (-15.0, -10.0, -5.0, 0.0, 5.0)
@@ -344,68 +348,3 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
             table[c] = np.nan
     return table[list(SWEEP_COLUMNS) + [c for c in table.columns if c not in SWEEP_COLUMNS]]
 
-
-def identify_sweeps_refined(meas: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFrame],
-                            overrides: dict | None = None, grid: tuple = (6, 6), refine_grid: tuple = (5, 5),
-                            results: pd.DataFrame | None = None, eta_trans: float = 0.95,
-                            tol: Tolerances = Tolerances(), surface: str = "spline", **kwargs) -> pd.DataFrame:
-    """:func:`identify_sweeps` on the coarse plane, then again on a local grid around each sweep's optimum.
-
-    The coarse (BDUR10-90, m) grid over the paper's plane interpolates exhaust temperature and fuel flow
-    only to tens of K / a few %, more than the bench's noise; the second stage simulates a
-    ``refine_grid`` over the stage-1 95 % region widened by one coarse grid spacing on each side
-    (clipped to the plane) and identifies again there.
-
-    Parameters
-    ----------
-    meas : DataFrame
-        Bench rows of :func:`sweep_plan` (all statuses).
-    evaluate : callable(plan) -> results
-        Simulates an :func:`engine_model.identify.identification_plan` (one row per plan row, same order).
-    overrides : dict, optional
-        Spec overrides (``{"spec.<section>.<field>": value}``), as for ``identification_plan``.
-    grid, refine_grid : (n_bdur, n_m)
-        Coarse and local grid sizes.
-    results : DataFrame, optional
-        Already simulated coarse-grid results (skips the first evaluation).
-    eta_trans, tol, surface, **kwargs
-        As :func:`identify_sweeps`.
-
-    Returns
-    -------
-    DataFrame
-        As :func:`identify_sweeps`, plus ``refined`` (bool), ``bdur_10_90_deg_coarse`` and ``wiebe_m_coarse``.
-    """
-    from .identify import BDUR_RANGE_DEG, M_RANGE, identification_plan
-    ok = meas[meas["status"] == "ok"].reset_index(drop=True)
-    if results is None:
-        results = evaluate(identification_plan(ok, overrides, *grid))
-    t1 = identify_sweeps(meas, results, eta_trans, tol, surface, **kwargs)
-    db = (BDUR_RANGE_DEG[1] - BDUR_RANGE_DEG[0]) / (grid[0] - 1)
-    dm = (M_RANGE[1] - M_RANGE[0]) / (grid[1] - 1)
-    plans, todo = [], []
-    for r in t1.itertuples():
-        if not math.isfinite(r.bdur_10_90_deg):
-            continue
-        br = (max(BDUR_RANGE_DEG[0], r.bdur_10_90_deg_lo - db), min(BDUR_RANGE_DEG[1], r.bdur_10_90_deg_hi + db))
-        mr = (max(M_RANGE[0], r.wiebe_m_lo - dm), min(M_RANGE[1], r.wiebe_m_hi + dm))
-        plans.append(identification_plan(ok[ok["op_id"] == r.op_id], overrides, *refine_grid, br, mr))
-        todo.append(r.op_id)
-    t1 = t1.assign(refined=False, bdur_10_90_deg_coarse=t1["bdur_10_90_deg"], wiebe_m_coarse=t1["wiebe_m"])
-    if not todo:
-        return t1
-    plan2 = pd.concat(plans, ignore_index=True)
-    res2 = evaluate(plan2)
-    if len(res2) != len(plan2):
-        raise ValueError(f"identify_sweeps_refined: evaluate returned {len(res2)} rows for {len(plan2)} plan rows")
-    res2 = res2.reset_index(drop=True)
-    res2["bench_point_id"] = plan2["bench_point_id"].to_numpy()
-    sub = meas[meas["op_id"].isin(todo)]
-    t2 = identify_sweeps(sub, res2, eta_trans, tol, surface, **kwargs).set_index("op_id")
-    rows = []
-    for r in t1.to_dict("records"):
-        if r["op_id"] in t2.index:
-            new = t2.loc[r["op_id"]].to_dict()
-            r = {**r, **new, "op_id": r["op_id"], "refined": True}
-        rows.append(r)
-    return pd.DataFrame(rows)[list(t1.columns) + [c for c in t2.columns if c not in t1.columns]]
