@@ -159,10 +159,10 @@ def measured_mbt(sweep: pd.DataFrame) -> tuple[float, str]:
     """MBT spark [deg BTDC] of one measured sweep, or NaN with the reason.
 
     ``sweep``: bench rows of one operating point (``spark_deg_btdc, brake_torque_nm, status``).  The maximum
-    of measured torque must lie strictly inside the sparks run ('ok' rows), and no knock abort may lie at or
-    below the spark of the next 'ok' point after it (a knock abort right after the maximum means the sweep
-    is knock-limited).  The MBT spark is the vertex of a parabola through the maximum and its two
-    neighbours (clipped to that interval).
+    of measured torque must lie strictly inside the sparks that ran ('ok' rows); a maximum at the most
+    advanced 'ok' spark is "knock-limited" if the sweep has a knock abort (torque still rising where the
+    bench stopped), else "not bracketed".  The MBT spark is the vertex of a parabola through the maximum
+    and its two neighbours (clipped to that interval).
     """
     s = sweep.sort_values("spark_deg_btdc")
     ok = s[s["status"] == "ok"]
@@ -256,7 +256,8 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
         ``spark_deg_btdc`` is the mean spark of the sweep's 'ok' points (the spark at which the
         constant-parameter fit is representative), ``mbt_spark_deg_btdc`` the measured MBT (NaN if the
         sweep is knock-limited or does not bracket MBT; ``status`` says which), bounds are the 95 %
-        region ``chi2 - chi2_min <= 5.99``.  ``fit_ok``: every point's power within ``tol.power_rel``
+        region ``chi2 - chi2_min <= 5.99``, ``bdur_spark_slope_per_deg`` / ``m_spark_slope_per_deg`` the
+        chosen relative slopes [1/deg], ``region_at_edge`` whether the region touches the plane's edge.  ``fit_ok``: every point's power within ``tol.power_rel``
         and exhaust temperature within ``tol.exhaust_temp_k`` at the joint optimum (a burn that the
         sweep cannot share fails it).  Sweeps with < 2 runnable sparks are kept with NaN and a status.
     """
