@@ -92,3 +92,22 @@ def test_plan_rows_mismatch_is_a_clear_error(sweep_data):
         identify_sweeps(meas, res[res["bench_point_id"] != missing])
     with pytest.raises(ValueError, match="lack column.*op_id"):
         identify_sweeps(meas.drop(columns=["op_id"]), res)
+
+
+def test_choose_operating_points_respects_bounds_and_screen():
+    from engine_model.identify_sweep import choose_operating_points
+    b = {"throttle_pct": (20.0, 100.0), "speed_rpm": (6000.0, 12000.0)}
+    ops = choose_operating_points(6, bounds=b)
+    assert len(ops) == 6 and not ops.duplicated().any()
+    assert ops["throttle_pct"].between(*b["throttle_pct"]).all() and ops["speed_rpm"].between(*b["speed_rpm"]).all()
+    seen = []
+
+    def screen(p):
+        seen.append(set(p.columns))
+        return (p["throttle_pct"] >= 40.0).to_numpy()
+
+    ops = choose_operating_points(6, feasible=screen, bounds=b)
+    assert (ops["throttle_pct"] >= 40.0).all()
+    assert {"speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda"} <= seen[0]
+    with pytest.raises(ValueError, match=">= 6"):
+        choose_operating_points(4)
