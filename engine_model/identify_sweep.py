@@ -49,7 +49,8 @@ import pandas as pd
 from . import doe, wiebe
 from .identify import CHI2_95_2DOF, Tolerances, chi2_terms, point_surfaces, terms_used
 
-__all__ = ["DEFAULT_OFFSETS", "DEFAULT_TERMS", "SPARK_SLOPES", "MBT_SPARK_SIGMA_DEG", "choose_operating_points", "sweep_plan", "measured_mbt",
+__all__ = ["DEFAULT_OFFSETS", "DEFAULT_TERMS", "SPARK_SLOPES", "MBT_SPARK_SIGMA_DEG", "choose_operating_points",
+           "sweep_plan", "measured_mbt",
            "identify_sweeps", "SWEEP_COLUMNS"]
 
 #: Spark offsets from the MBT prior [deg]; the prior is ~ +-3 deg from the engine's MBT, so -15..+5 brackets it.
@@ -102,7 +103,8 @@ def choose_operating_points(n: int, feasible: Callable[[pd.DataFrame], np.ndarra
     g = np.meshgrid(np.linspace(*b["speed_rpm"], levels), np.linspace(*b["throttle_pct"], levels), indexing="ij")
     cand = pd.DataFrame({"speed_rpm": g[0].ravel(), "throttle_pct": g[1].ravel()})
     if feasible is not None:
-        probe = cand.assign(spark_deg_btdc=doe.spark_estimate(cand["speed_rpm"].to_numpy(), cand["throttle_pct"].to_numpy()),
+        spark = doe.spark_estimate(cand["speed_rpm"].to_numpy(), cand["throttle_pct"].to_numpy())
+        probe = cand.assign(spark_deg_btdc=spark,
                             **{"lambda": doe.lambda_target(cand["throttle_pct"].to_numpy())})
         cand = cand[np.asarray(feasible(probe), bool)].reset_index(drop=True)
         if len(cand) < n:
@@ -138,7 +140,8 @@ def sweep_plan(op_points: pd.DataFrame, offsets: Sequence[float] = DEFAULT_OFFSE
         v = pd.to_numeric(op_points[c], errors="coerce").to_numpy(float)
         if not np.isfinite(v).all():
             i = int(np.flatnonzero(~np.isfinite(v))[0])
-            raise ValueError(f"sweep_plan: op_points row {i}, column {c!r}: value {op_points[c].iloc[i]!r} is not a number")
+            raise ValueError(f"sweep_plan: op_points row {i}, column {c!r}: value {op_points[c].iloc[i]!r} "
+                             "is not a number")
     ops = op_points.reset_index(drop=True)
     ids = ops["op_id"].astype(str) if "op_id" in ops.columns else \
         pd.Series([f"op{i + 1:02d}" for i in range(len(ops))])
@@ -253,13 +256,14 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
     -------
     DataFrame
         One row per op_id (columns :data:`SWEEP_COLUMNS`, then ``chi2_<term>`` sums and ``terms``):
-        ``spark_deg_btdc`` is the mean spark of the sweep's 'ok' points (the spark at which the
-        constant-parameter fit is representative), ``mbt_spark_deg_btdc`` the measured MBT (NaN if the
+        ``spark_deg_btdc`` is the mean spark of the sweep's 'ok' points (the spark the reported
+        parameters belong to), ``mbt_spark_deg_btdc`` the measured MBT (NaN if the
         sweep is knock-limited or does not bracket MBT; ``status`` says which), bounds are the 95 %
         region ``chi2 - chi2_min <= 5.99``, ``bdur_spark_slope_per_deg`` / ``m_spark_slope_per_deg`` the
-        chosen relative slopes [1/deg], ``region_at_edge`` whether the region touches the plane's edge.  ``fit_ok``: every point's power within ``tol.power_rel``
-        and exhaust temperature within ``tol.exhaust_temp_k`` at the joint optimum (a burn that the
-        sweep cannot share fails it).  Sweeps with < 2 runnable sparks are kept with NaN and a status.
+        chosen relative slopes [1/deg], ``region_at_edge`` whether the region touches the plane's edge.
+        ``fit_ok``: at the joint optimum at most half of the sweep's readings (each point's power against
+        ``tol.power_rel``, exhaust temperature against ``tol.exhaust_temp_k``) miss their tolerance; the
+        misses are listed in ``status``.  Sweeps with < 2 runnable sparks are kept with NaN and a status.
     """
     if not 0.5 < eta_trans <= 1.0:
         raise ValueError(f"identify_sweeps: eta_trans must be in (0.5, 1], got {eta_trans!r}")
@@ -288,7 +292,8 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
             ps = point_surfaces(row, blocks[str(row["point_id"])], surface)
             if shape is None:
                 shape, fb, fm = ps.fine["brake_power_kw"].shape, ps.fine_b, ps.fine_m
-            elif ps.fine["brake_power_kw"].shape != shape or not (np.allclose(ps.fine_b, fb) and np.allclose(ps.fine_m, fm)):
+            elif ps.fine["brake_power_kw"].shape != shape or not (np.allclose(ps.fine_b, fb)
+                                                                   and np.allclose(ps.fine_m, fm)):
                 raise ValueError(f"identify_sweeps: op_id {oid!r}, point {row['point_id']!r}: its (BDUR10-90, m) "
                                  "grid differs from the sweep's other points; use one identification_plan grid")
             use = [t for t in terms_used(row) if terms is None or t in terms]
