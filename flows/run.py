@@ -158,11 +158,13 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
                              tolerance=quick.tolerance, label="feasibility", progress=progress, overrides=overrides)
 
     def feasible(points: pd.DataFrame) -> np.ndarray:
-        pts = doe.with_combustion(points.reset_index(drop=True))
+        # can the sweep run at all?  Screened at its most retarded spark (candidates come at the MBT prior)
+        pts = points.reset_index(drop=True).copy()
+        pts["spark_deg_btdc"] = pts["spark_deg_btdc"] + min(rs.spark_offsets)
+        pts = doe.with_combustion(pts)
         if "point_id" not in pts.columns:
             pts["point_id"] = [f"c{i:05d}" for i in range(len(pts))]
-        # a knock margin: the screen uses burn-duration priors, the engine burns by its own law
-        return doe.feasibility(pts, evaluate=ev_feas, knock_margin=0.3)["feasible"].to_numpy(bool)
+        return doe.feasibility(pts, evaluate=ev_feas)["feasible"].to_numpy(bool)
 
     # the paper's bench procedure: per operating point (D-optimal over throttle x speed, screened) a spark
     # sweep around the MBT prior; the sweep is identified jointly (engine_model.identify_sweep), which pins
