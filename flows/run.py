@@ -52,7 +52,7 @@ class RunSettings:
     eta_trans [-]: transmission efficiency assumed between crank and brake (paper: 0.95).
     step_deg [deg]: crank-angle step of every simulation.
     calibration: airflow-match and identification settings (grid sizes, iterations).
-    doe_points, doe_seed, spark_offsets: operating points on the virtual bench (D-optimal over throttle x speed
+    doe_points, doe_seed, spark_offsets, doe_bounds: operating points on the virtual bench (D-optimal over throttle x speed
         from screened candidates) and the spark sweep run at each, offsets from the MBT prior [deg].
     ident_grid: (n_bdur, n_m) of the cheap identification at the DOE points.
     map_throttle, map_speed: ECU breakpoints ('0,5,10' or 'start:stop:step'; None = EcuGrid default).
@@ -67,6 +67,7 @@ class RunSettings:
     doe_design: str = "d_optimal_feasible"
     doe_points: int = 10
     spark_offsets: tuple = (-15, -10, -5, 0, 5)
+    doe_bounds: dict = field(default_factory=dict)
     doe_seed: int = 0
     ident_grid: tuple = (6, 6)
     map_throttle: str | None = None
@@ -92,7 +93,9 @@ QUICK = RunSettings(
     step_deg=1.0,
     calibration=CalibrationSettings(step_deg=1.0, airflow_grid=(2, 2, 1), airflow_starts=1, airflow_max_nfev=2,
                                     n_bdur=7, n_m=7, surface="cubic"),
-    doe_points=8, spark_offsets=(-10, -5, 0), ident_grid=(5, 5), map_throttle="30,60,100", map_speed="6000,9000,12000",
+    doe_points=10, spark_offsets=(-10, -5, 0),
+    # the small run stays where the (uncalibrated, pessimistic) knock model lets sweeps run
+    doe_bounds={"throttle_pct": (30.0, 100.0), "speed_rpm": (6000.0, 13000.0)}, ident_grid=(5, 5), map_throttle="30,60,100", map_speed="6000,9000,12000",
     learning_sizes=(12, 16), learning_seeds=(0,),
     holdout={"throttle_pct": (20, 60, 100), "speed_rpm": (6000, 9000, 12000), "spark_offset": (-15, -5, 5)})
 
@@ -169,7 +172,8 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
     # the paper's bench procedure: per operating point (D-optimal over throttle x speed, screened) a spark
     # sweep around the MBT prior; the sweep is identified jointly (engine_model.identify_sweep), which pins
     # the burn far better than each point alone (torque and exhaust T only; no CA50 away from MBT)
-    ops = choose_operating_points(rs.doe_points, feasible=feasible, seed=rs.doe_seed)
+    ops = choose_operating_points(rs.doe_points, feasible=feasible, seed=rs.doe_seed,
+                                  bounds=dict(rs.doe_bounds) if rs.doe_bounds else None)
     plan = sweep_plan(ops, offsets=rs.spark_offsets)
     write_parquet(plan, vdir / "plan.parquet")
     meas = bench.measure(plan, evaluate=ev("vbench"))
