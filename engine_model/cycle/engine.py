@@ -50,6 +50,7 @@ RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence est
 # (measured on 12 points, 250-cycle runs); a larger value only costs cycles.
 RHO_START = 0.92
 RHO_MAX = 0.97   # [-] ratios above this count as not contracting
+MBAL_SHARE = 0.25   # [-] the cycle's mass imbalance must be below this share of the tolerance (floor seen ~1.5e-4)
 
 
 def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
@@ -480,7 +481,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             rho = max(dn / d_prev, rho_slow) if d_prev > 0.0 else rho_slow
             est = dn * rho / (1.0 - rho) if rho < RHO_MAX else 1.0
             have_est = True
-            if cyc >= mincyc and est < tol and dn < tol and mbal < tol:
+            if cyc >= mincyc and est < tol and dn < tol and mbal < MBAL_SHARE * tol:
                 converged = 1
             d_prev = dn
         else:
