@@ -33,6 +33,7 @@ import pandas as pd
 from . import prefect_env
 from .calibrate import CalibrationSettings, calibrate_into
 from .evaluate import SweepEvaluator, shared_cluster
+from .gap import gap_into
 from .sweep import DEFAULT_WORKERS
 
 from prefect import flow  # noqa: E402
@@ -279,22 +280,6 @@ def _maps_stage(work: Path, cal_spec, overrides: dict, spec: str | None, addr: s
     return {"stats": res.stats, "files": {k: str(v) for k, v in paths.items()}}
 
 
-def _gap_stage(work: Path, meas: pd.DataFrame, source: str, cal_spec, overrides: dict, spec: str | None, addr: str,
-               rs: RunSettings, progress: bool) -> dict:
-    from engine_model.gap.api import diagnose_bench
-    from engine_model.gap.report import write_gap_report
-
-    ev = SweepEvaluator(work / "sweeps", addr, spec=spec, step_deg=rs.step_deg, label="gap", progress=progress,
-                        overrides=overrides)
-    d, info = diagnose_bench(meas, ev, spec=cal_spec, source=source)
-    notes = [f"Bench: {source}; model: the airflow-matched spec ({overrides}). Base calibration parameters: "
-             f"{info['theta']} (base: {info['base']})."]
-    paths = write_gap_report(d, work, notes=notes)
-    return {"statement": d.statement, "named": d.named, "best": d.best, "confidence": d.confidence,
-            "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
-            "gap_reduction_pct": d.gap_reduction_pct, "report": str(paths["markdown"])}
-
-
 @flow(name="run", log_prints=False, validate_parameters=False)
 def run_flow(out: str, bench: str | None = None, spec: str | None = None, settings: dict | None = None,
              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True) -> dict:
@@ -329,14 +314,14 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
             man["maps"] = _maps_stage(work, cal_spec, overrides, spec, addr, rs, progress)
             t = _stage_time(timings, "maps", t)
         if "gap" in rs.stages:
-            man["gap"] = _gap_stage(work, meas, source, cal_spec, overrides, spec, addr, rs, progress)
+            man["gap"] = gap_into(work, meas, source, spec, addr, rs.step_deg, progress, overrides=overrides)
             t = _stage_time(timings, "gap", t)
     man["timings_s"] = timings
     man["wall_time_s"] = round(time.perf_counter() - t0, 1)
     man["created"] = _dt.datetime.now().isoformat(timespec="seconds")
     man["status"] = "complete"
-    _write_index(work, man)
     write_json(man, work / "manifest.json")
+    _write_index(work, man)
     if final.exists():
         shutil.rmtree(final)
     work.rename(final)
@@ -377,7 +362,6 @@ def _write_index(work: Path, man: dict) -> Path:
         gfiles = sorted(p.relative_to(work) for p in (work / "gap").glob("*") if p.is_file())
         sections.append(("Sim-to-real gap", man["gap"]["statement"], gfiles))
     sections.append(("Run", "", ["manifest.json", "sweeps"]))
-    write_json(man, work / "manifest.json")      # so that the index can link it with its size
     return write_index(work, "mbc run: Yamaha R6 FS calibration", summary, sections)
 
 
