@@ -102,6 +102,8 @@ def main(argv=None) -> None:
     ap.add_argument("--step-deg", type=float, default=1.0)
     ap.add_argument("--tolerance", type=float, default=1e-2)
     ap.add_argument("--memory-points", default="1000,10000,100000")
+    ap.add_argument("--direct-s", type=float, default=None,
+                    help="reuse the direct-call wall time of an earlier run on the same plan and solver [s]")
     ap.add_argument("--memory-step-deg", type=float, default=2.0)
     ap.add_argument("--memory-tolerance", type=float, default=5e-2)
     args = ap.parse_args(argv)
@@ -113,8 +115,12 @@ def main(argv=None) -> None:
     print(f"plan: {len(plan)} points ({len(plan) // (len(WIEBE_BDUR) * len(WIEBE_M)) + 1} operating points x "
           f"Wiebe grid), solver step {args.step_deg:g} deg, tolerance {args.tolerance:g}; scratch {tmp}")
 
-    direct = _py(DIRECT, plan_path, args.step_deg, args.tolerance)
-    print(f"direct, one process:        {direct['wall_s']:8.1f} s  {len(plan) / direct['wall_s']:7.1f} pt/s")
+    if args.direct_s is None:
+        direct = _py(DIRECT, plan_path, args.step_deg, args.tolerance)
+        print(f"direct, one process:        {direct['wall_s']:8.1f} s  {len(plan) / direct['wall_s']:7.1f} pt/s")
+    else:
+        direct = {"wall_s": args.direct_s}
+        print(f"direct, one process:        {direct['wall_s']:8.1f} s  (given with --direct-s, not measured)")
     runs = {}
     for w in (1, 2):
         r = _py(SWEEP, plan_path, tmp / f"sweep_w{w}", w, args.step_deg, args.tolerance)

@@ -35,6 +35,7 @@ from engine_model.io import _atomic
 
 PART_META_KEY = b"mbc_chunk"
 PART_GLOB = "part-*.parquet"
+RUN_STRETCH = 1.25   # a run of one operating condition up to 1.25 chunks stays in one chunk (see chunk_bounds)
 
 # dtypes of the result columns in the dataset (everything else float64)
 _RESULT_TYPES = {"converged": pa.bool_(), "cycles_run": pa.int64(), "status": pa.string()}
@@ -54,18 +55,23 @@ def solver_hash(solver) -> str:
     return sha256_text(json.dumps(asdict(solver), sort_keys=True))
 
 
-def chunk_bounds(n_points: int, chunk_size: int, groups=None) -> list[tuple[int, int]]:
+def chunk_bounds(n_points: int, chunk_size: int, groups=None, stretch: float = RUN_STRETCH) -> list[tuple[int, int]]:
     """[start, stop) row ranges of consecutive chunks covering ``n_points`` rows.
 
     With ``groups`` (one hashable key per row), chunks end at a change of key
     where possible: the simulator reuses the converged state between
     consecutive rows of one operating condition, and a chunk boundary inside
     such a run costs a cold start.  A chunk then holds whole runs of rows up to
-    ``chunk_size`` (a run longer than that is split into ``chunk_size`` pieces).
-    Deterministic in the plan and ``chunk_size``, which resuming relies on.
+    ``chunk_size``.  A run up to ``stretch * chunk_size`` rows stays whole (one
+    slightly longer task is cheaper than a cold start plus one more task); a
+    longer run is cut into the fewest near-equal pieces of at most
+    ``chunk_size`` rows.  Deterministic in the plan and ``chunk_size``, which
+    resuming relies on.
     """
     if chunk_size < 1:
         raise ValueError(f"chunk_size = {chunk_size} must be >= 1")
+    if stretch < 1.0:
+        raise ValueError(f"stretch = {stretch} must be >= 1")
     if groups is None:
         return [(s, min(s + chunk_size, n_points)) for s in range(0, n_points, chunk_size)]
     keys = list(groups)
@@ -76,14 +82,17 @@ def chunk_bounds(n_points: int, chunk_size: int, groups=None) -> list[tuple[int,
         if i == n_points or keys[i] != keys[i - 1]:
             runs.append((start, i))
             start = i
+    longest = max(chunk_size, int(stretch * chunk_size))
     bounds, cur = [], None
     for a, b in runs:
-        while b - a > chunk_size:                     # a long run: whole pieces of chunk_size
+        if b - a > longest:                           # a long run: near-equal pieces of at most chunk_size
             if cur is not None:
                 bounds.append(cur)
-                cur = None
-            bounds.append((a, a + chunk_size))
-            a += chunk_size
+            pieces = -(-(b - a) // chunk_size)
+            edges = [a + (k * (b - a)) // pieces for k in range(pieces + 1)]
+            bounds.extend(zip(edges[:-2], edges[1:-1]))
+            cur = (edges[-2], b)                     # the last piece stays open for short runs after it
+            continue
         if cur is not None and (b - cur[0]) <= chunk_size:
             cur = (cur[0], b)                        # the run fits into the open chunk
         else:
@@ -169,13 +178,13 @@ def attempt_counts(sweep_dir: Path) -> dict[int, int]:
     return counts
 
 
-def read_results(out_dir) -> pd.DataFrame:
-    """All finished points of a sweep as one DataFrame (order of the plan)."""
+def read_results(out_dir, columns: list[str] | None = None) -> pd.DataFrame:
+    """All finished points of a sweep as one DataFrame (order of the plan; ``columns`` to read only some)."""
     sweep = Path(out_dir) / "sweep"
     parts = sorted(sweep.glob(PART_GLOB))
     if not parts:
         return pd.DataFrame()
-    df = pd.read_parquet(sweep)
+    df = pd.read_parquet(sweep, columns=None if columns is None else list(dict.fromkeys([*columns, "plan_row"])))
     if "plan_row" in df.columns:
         df = df.sort_values("plan_row", kind="stable").reset_index(drop=True)
     return df

@@ -92,6 +92,11 @@ def test_rerun_skips_finished_chunks_and_refuses_a_different_plan(prefect_api, t
     with pytest.raises(ValueError, match="different plan"):
         run_sweep(src2, out, workers=1, progress=False, **QUICK)
     assert store.attempt_counts(out / "sweep") == after
+    # the same plan with another chunking (explicit chunk_size): the old parts are replaced, none is left
+    # over to duplicate points in the dataset
+    man3 = run_sweep(src, out, workers=1, chunk_size=len(plan), progress=False, **QUICK)
+    assert man3["chunks"] == 1 and len(_parts(out)) == 1
+    _check_dataset(out, plan)
 
 
 def _wait_for(cond, timeout: float, what: str):
@@ -185,12 +190,17 @@ def test_chunks_follow_state_groups():
     keys = ["a"] * 5 + ["b"] * 2 + ["c"] * 9 + ["d"]
     b = store.chunk_bounds(len(keys), 4, groups=keys)
     rows = [i for a, z in b for i in range(a, z)]
-    assert rows == list(range(len(keys))) and all(z - a <= 4 for a, z in b)
-    # a chunk may start inside a run of one key (a cold start the plan did not ask for) only where that
-    # run is longer than a chunk: here run "a" (5 rows) once and run "c" (9 rows) at most twice
+    assert rows == list(range(len(keys)))
+    # run "a" (5 rows <= 1.25 x 4) stays whole; run "c" (9 rows) is cut into three near-equal pieces of <= 4
+    # rows, the last of which takes the short run "d" after it; no chunk starts inside a run otherwise
+    assert b == [(0, 5), (5, 7), (7, 10), (10, 13), (13, 17)]
+    assert all(z - a <= int(store.RUN_STRETCH * 4) for a, z in b)
     run_start = {0: "a", 5: "b", 7: "c", 16: "d"}
-    inside = [a for a, _ in b if a not in run_start]
-    assert inside == [4, 11, 15] or len(inside) <= 3
-    assert all(keys[a] in ("a", "c") for a in inside)
+    assert all(keys[a] == "c" for a, _ in b if a not in run_start)
     assert store.chunk_bounds(len(keys), 20, groups=keys) == [(0, 17)]
-    assert store.chunk_bounds(len(keys), 7, groups=keys) == [(0, 7), (7, 14), (14, 17)]
+    assert store.chunk_bounds(len(keys), 7, groups=keys) == [(0, 7), (7, 11), (11, 17)]
+    # without the stretch every chunk respects the size strictly
+    b1 = store.chunk_bounds(len(keys), 4, groups=keys, stretch=1.0)
+    assert all(z - a <= 4 for a, z in b1) and [i for a, z in b1 for i in range(a, z)] == list(range(len(keys)))
+    with pytest.raises(ValueError):
+        store.chunk_bounds(5, 2, groups=["a"] * 5, stretch=0.5)
