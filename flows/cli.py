@@ -187,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
     w = sub.add_parser("sweep", help="simulate a plan on Dask workers into Parquet parts (re-run resumes)")
     w.add_argument("--plan", required=True, help="plan CSV/Parquet: contract columns incl. bdur_10_90_deg, wiebe_m")
     w.add_argument("--out", default=None, help="output folder (default results/<time>-<plan hash>/)")
-    w.add_argument("--chunk-size", type=int, default=None, help="points per Dask task (default: ~3 s of work)")
+    w.add_argument("--chunk-size", type=int, default=None, help="points per Dask task (default: ~5 s of work)")
     w.add_argument("--tolerance", type=float, default=1e-3, help="cycle convergence tolerance (default 1e-3)")
     common(w)
     dask(w)
