@@ -148,7 +148,7 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
         ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
         ("Identification at the jointly fitted eta_trans", [
             joint.summary(), joint.table, ident_joint.summary(),
-            params_joint[[c for c in show + ["eta_trans", "power_ok", "ca50_ok"] if c in params_joint.columns]]]),
+            params_joint[[c for c in show[:3] + ["eta_trans"] + show[3:] if c in params_joint.columns]]]),
         ("Transmission efficiency", [
             "Identified parameters versus the assumed eta_trans (post-processing: eta only scales the target):",
             eta[["point_id", "eta_trans", "bdur_10_90_deg", "wiebe_m", "ca50_deg_atdc", "brake_power_err_pct",
