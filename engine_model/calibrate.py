@@ -6,6 +6,7 @@
     ident = cal.identify(meas, res, eta_trans=0.95)                     # (BDUR10-90, m) per point
     eta = cal.eta_sensitivity(ident); rel = cal.fit_eta_relation(cal.power_isolines(ident))
     joint = cal.joint_fit(ident)                                        # eta_trans shared per throttle
+    at_joint = cal.identify_at_eta(ident, joint.eta_by_throttle())      # (BDUR10-90, m) at that eta
 
 Every function that simulates takes an ``evaluate(plan DataFrame) -> results
 DataFrame`` callable (default: in-process :func:`engine_model.simulate`), so
@@ -24,5 +25,5 @@ from .calibrate_plots import plot_airflow_match, plot_eta_relation, plot_identif
 from .identifiability import identifiability_check, synthetic_bench  # noqa: F401
 from .identify import (Identification, Tolerances, grid_axes, identification_plan, identify,  # noqa: F401
                        identify_point, identify_quick, point_surfaces, quadratic_rs, terms_used)
-from .identify_eta import (DEFAULT_ETAS, JointFit, eta_sensitivity, fit_eta_relation, joint_fit,  # noqa: F401
-                           power_isolines, relation_text)
+from .identify_eta import (DEFAULT_ETAS, JointFit, eta_sensitivity, fit_eta_relation,  # noqa: F401
+                           identify_at_eta, joint_fit, power_isolines, relation_text)

@@ -22,13 +22,28 @@ at some speeds.  So the default parameter set is
    scavenging peak.
 2. ``intake.runner_length_m`` (plenum to valve seat, incl. head port), range
    0.10-0.35 m [A, FS intake manifolds]; sets the ram-tuning speed.
-3. ``intake.restrictor_cd``, range 0.85-0.99: the one level parameter; the
-   20 mm restrictor chokes near the top of the speed range, where nothing
-   else can move the flow [FS rules: one 20 mm restrictor].
+3. ``intake.restrictor_recovery``, range 0.50-0.95: the fraction of the
+   throat's dynamic head the diffuser behind the 20 mm restrictor recovers.
+   Conical diffusers of 2theta ~ 5-10 deg recover 0.8-0.9 of it, short or
+   partly stalled ones (an FS diffuser is length-limited) 0.5-0.7 (White,
+   Fluid Mechanics, 7th ed., sec. 6.11, diffuser performance maps).  Its
+   effect grows with the throat velocity, i.e. with speed (+0.35 % Ga_REL per
+   0.02 at 8000 rpm, +0.54 % at 11000 rpm on the matched R6), so besides the
+   level it tilts the Ga curve.
 
-Diffuser recovery and the runner loss factor act much like the restrictor
-Cd at the top speeds and would be nearly collinear with it, so they stay at
-their spec values.  Other sets can be passed as ``parameters``.
+Why recovery and not the restrictor Cd (the set used before): a screen of 14
+candidate global parameters (:mod:`engine_model.calibrate_screen`,
+``benchmarks/airflow_screen.py``; docs/sections/calibration.md) showed that
+around the matched runner lengths Cd moves Ga_REL by only 0.05-0.10 % per
+0.006 (the restrictor is far from choking at the matched flows), so it was
+barely determined (95 % interval +-0.21) and 0.94-correlated with the exhaust
+length.  With recovery as the third parameter the least-squares optimum has
+rms Ga_REL 0.77 % (was 1.19 %), the largest parameter correlation is 0.66
+and recovery is determined to +-0.06; Cd stays at its spec value (0.97,
+ISO 5167-4 venturis 0.95-0.995).  The next best third parameters in real
+matches were the plenum volume (rms 0.89 %, at its 1.5 L bound), the intake
+runner diameter (0.90 %, correlated 0.92 with the intake length) and the
+exhaust collector volume (1.05 %).  Other sets can be passed as ``parameters``.
 
 Method
 ------
@@ -91,7 +106,8 @@ class Parameter:
 DEFAULT_PARAMETERS = (
     Parameter("exhaust.runner_length_m", 0.20, 0.70, 0.004, "m", "exhaust primary length: scavenging tuning"),
     Parameter("intake.runner_length_m", 0.10, 0.35, 0.004, "m", "intake runner length: ram tuning"),
-    Parameter("intake.restrictor_cd", 0.85, 0.99, 0.003, "-", "restrictor discharge coefficient: choked level"),
+    Parameter("intake.restrictor_recovery", 0.50, 0.95, 0.02, "-",
+              "diffuser pressure recovery behind the restrictor: level, rising with speed"),
 )
 AIRFLOW_NOISE_PCT = 1.0     # [A] assumed 1-sigma airflow measurement noise, % of reading
 MAX_PARAMETERS = 3          # issue 4: at most three global parameters

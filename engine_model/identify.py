@@ -366,9 +366,13 @@ def identify_point(ps: PointSurfaces, eta_trans: float = 0.95, tol: Tolerances =
     }
     res.update({f"chi2_{k}": float(v[i, j]) for k, v in parts.items()})
     res.update(mir)
-    ok = abs(res["brake_power_err_pct"]) <= 100 * tol.power_rel
+    # pass flags of the paper's acceptance: brake power within +-1 % of the crank target, CA50 in the
+    # 8-10 deg band (only a requirement where the point is at MBT, but reported everywhere)
+    res["power_ok"] = bool(abs(res["brake_power_err_pct"]) <= 100 * tol.power_rel + 1e-9)
+    res["ca50_ok"] = bool(abs(res["ca50_deg_atdc"] - tol.ca50_target_deg) <= tol.ca50_sigma_deg + 1e-9)
+    ok = res["power_ok"]
     if "ca50" in terms:
-        ok &= abs(res["ca50_deg_atdc"] - tol.ca50_target_deg) <= tol.ca50_sigma_deg + 1e-9
+        ok &= res["ca50_ok"]
     if "exhaust_temp" in terms:
         ok &= abs(res["exhaust_temp_err_k"]) <= tol.exhaust_temp_k
     res["fit_ok"] = bool(ok)

@@ -94,6 +94,10 @@ class JointFit:
     profile: pd.DataFrame      # throttle_pct, eta_trans, chi2 (sum over points of each point's minimum)
     table: pd.DataFrame        # throttle_pct, eta_best, eta_lo, eta_hi, identifiable, points, chi2_min
 
+    def eta_by_throttle(self) -> dict:
+        """``{throttle_pct: eta_best}`` (the profile minimum, also where it is not identified)."""
+        return {float(r.throttle_pct): float(r.eta_best) for r in self.table.itertuples()}
+
     def summary(self) -> str:
         parts = []
         for r in self.table.itertuples():
@@ -149,3 +153,40 @@ def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
                     "eta_hi": float(e[inside].max()), "identifiable": bool(ident_), "points": int(g["points"].iloc[0]),
                     "chi2_min": float(g["chi2"].iloc[k]), "note": why})
     return JointFit(prof, pd.DataFrame(out))
+
+
+def identify_at_eta(ident: Identification, eta_trans) -> Identification:
+    """Re-identify every point at another transmission efficiency (post-processing, no simulation).
+
+    Parameters
+    ----------
+    ident : Identification
+        From :func:`engine_model.identify.identify` (its surfaces are reused).
+    eta_trans : float or dict
+        One eta_trans [-] for all points, or ``{throttle_pct: eta}`` (e.g. from
+        :meth:`JointFit.eta_by_throttle`); points whose throttle is missing keep ``ident.eta_trans``.
+
+    Returns
+    -------
+    Identification
+        Same table layout as ``ident.table`` (contract columns, 95 % bounds, ``power_ok``, ``ca50_ok``,
+        ``fit_ok``, ``status``) with ``eta_trans`` set per row; skipped or failed rows are kept as they were.
+    """
+    def eta_of(throttle):
+        if isinstance(eta_trans, dict):
+            return float(eta_trans.get(float(throttle), ident.eta_trans))
+        return float(eta_trans)
+
+    rows = []
+    for _, r in ident.table.iterrows():
+        row = r.to_dict()
+        eta = eta_of(row["throttle_pct"])
+        row["eta_trans"] = eta
+        ps = ident.surfaces.get(str(row["point_id"]))
+        if ps is not None:
+            row.update(identify_point(ps, eta, ident.tol))
+        rows.append(row)
+    table = pd.DataFrame(rows, columns=list(ident.table.columns) +
+                         [c for c in ("power_ok", "ca50_ok") if c not in ident.table.columns])
+    one = float(eta_trans) if not isinstance(eta_trans, dict) else float(np.mean(list(eta_trans.values())))
+    return Identification(table, ident.surfaces, one, ident.tol)

@@ -8,14 +8,14 @@
 Every simulation runs as a sweep on Dask (``flows.evaluate.SweepEvaluator``),
 into ``<out>/sweeps/``; a re-run into the same folder reads finished batches
 back.  Outputs in ``<out>/``: ``airflow_match.parquet``,
-``combustion_params.parquet``, ``eta_sensitivity.parquet``,
+``combustion_params.parquet`` (at the given eta_trans, default 0.95),
+``combustion_params_joint_eta.parquet`` (at the jointly fitted shared eta_trans), ``eta_sensitivity.parquet``,
 ``eta_relation.parquet``, ``summary.json``, figures and ``calibration.md`` / ``.html``.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
-import json
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -115,6 +115,9 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
     write_parquet(relation, out / "eta_relation.parquet")
     cal.plot_eta_relation(eta, iso, relation, figs / "eta_relation.png")
     joint = cal.joint_fit(ident)
+    ident_joint = cal.identify_at_eta(ident, joint.eta_by_throttle())
+    params_joint = ident_joint.table
+    write_parquet(params_joint, out / "combustion_params_joint_eta.parquet")
     t_id = time.perf_counter() - t0 - t_air
     rel_text = {r["point_id"]: cal.relation_text(r) for _, r in relation.iterrows() if r.get("status") == "ok"}
     summary = {
@@ -126,21 +129,26 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
                     "at_bound": match.at_bound, "simulations": ev_air.points, "seconds": round(t_air, 1)},
         "identification": {"points": len(params), "fit_ok": int(params["fit_ok"].sum()),
                            "grid": [s.n_bdur, s.n_m], "surface": s.surface,
-                           "simulations": ev_id.points, "seconds": round(t_id, 1)},
+                           "simulations": ev_id.points, "seconds": round(t_id, 1),
+                           "eta_trans": s.eta_trans, "per_point": _per_point(params)},
         "eta_relation": rel_text,
         "joint_fit": joint.summary(),
+        "joint_eta": _joint_summary(joint, params_joint),
         "eta_trans": s.eta_trans, "step_deg": s.step_deg, "airflow_step_deg": s.airflow_step_deg,
         "wall_s": round(time.perf_counter() - t0, 1),
     }
     show = ["point_id", "speed_rpm", "spark_deg_btdc", "bdur_10_90_deg", "bdur_10_90_deg_lo", "bdur_10_90_deg_hi",
             "wiebe_m", "wiebe_m_lo", "wiebe_m_hi", "ca50_deg_atdc", "brake_power_kw_meas", "brake_power_kw_sim",
-            "brake_power_err_pct", "pmax_bar", "mirror_wiebe_m", "mirror_rejected_by", "status"]
+            "brake_power_err_pct", "power_ok", "ca50_ok", "pmax_bar", "mirror_wiebe_m", "mirror_rejected_by", "status"]
     sections = [
         ("Airflow matching", [match.summary(), air_tab, figs / "ga_rel_vs_speed.png",
                               "Parameter correlation matrix (rows/columns in the order "
                               + ", ".join(match.names) + "):",
                               pd.DataFrame(match.correlation, columns=list(match.names))]),
         ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
+        ("Identification at the jointly fitted eta_trans", [
+            joint.summary(), joint.table, ident_joint.summary(),
+            params_joint[[c for c in show[:3] + ["eta_trans"] + show[3:] if c in params_joint.columns]]]),
         ("Transmission efficiency", [
             "Identified parameters versus the assumed eta_trans (post-processing: eta only scales the target):",
             eta[["point_id", "eta_trans", "bdur_10_90_deg", "wiebe_m", "ca50_deg_atdc", "brake_power_err_pct",
@@ -152,6 +160,78 @@ def calibrate_into(out, meas: pd.DataFrame, eng, spec: str | None, address: str,
     write_json({"kind": "calibration", "package_version": __version__, "spec_hash": eng.spec_hash(),
                 "created": _dt.datetime.now().isoformat(timespec="seconds"), **summary}, out / "summary.json")
     return summary
+
+
+_POINT_KEYS = ("point_id", "speed_rpm", "eta_trans", "bdur_10_90_deg", "bdur_10_90_deg_lo", "bdur_10_90_deg_hi",
+               "wiebe_m", "wiebe_m_lo", "wiebe_m_hi", "ca50_deg_atdc", "brake_power_err_pct", "power_ok", "ca50_ok",
+               "fit_ok", "region_at_edge", "status")
+
+
+def _per_point(table: pd.DataFrame) -> list[dict]:
+    """Plain-JSON rows of an identification table (the keys the summary and the console show)."""
+    out = []
+    for _, r in table.iterrows():
+        d = {}
+        for k in _POINT_KEYS:
+            v = r.get(k)
+            if v is None or (isinstance(v, float) and v != v):
+                d[k] = None
+            elif isinstance(v, (bool, str)) or hasattr(v, "dtype") and v.dtype == bool:
+                d[k] = v if isinstance(v, str) else bool(v)
+            else:
+                d[k] = round(float(v), 3)
+        out.append(d)
+    return out
+
+
+def _joint_summary(joint, table: pd.DataFrame) -> dict:
+    """The shared eta_trans per throttle with its interval, and the identification at it."""
+    groups = [{"throttle_pct": float(r.throttle_pct), "eta_trans": float(r.eta_best),
+               "ci95": [float(r.eta_lo), float(r.eta_hi)], "identifiable": bool(r.identifiable),
+               "note": str(r.note), "points": int(r.points)} for r in joint.table.itertuples()]
+    return {"groups": groups, "fit_ok": int(table["fit_ok"].sum()), "points": len(table),
+            "per_point": _per_point(table)}
+
+
+def _point_lines(rows: list[dict]) -> list[str]:
+    lines = [f"  {'point':<10} {'eta':>5} {'BDUR10-90 deg (95 %)':>22} {'m (95 %)':>18} {'CA50':>6} "
+             f"{'P err %':>8}  pass"]
+    for r in rows:
+        if r["bdur_10_90_deg"] is None:
+            lines.append(f"  {r['point_id']:<10} {r['status']}")
+            continue
+        flags = ("ok" if r["fit_ok"] else "MISS: " + ", ".join(
+            [k for k, v in (("power", r["power_ok"]), ("CA50", r["ca50_ok"])) if not v] or ["other term"]))
+        edge = " (region at the plane edge)" if r.get("region_at_edge") else ""
+        lines.append(f"  {r['point_id']:<10} {r['eta_trans']:>5.3f} {r['bdur_10_90_deg']:>6.1f} "
+                     f"({r['bdur_10_90_deg_lo']:>4.1f}-{r['bdur_10_90_deg_hi']:>4.1f}){'':>4} "
+                     f"{r['wiebe_m']:>5.2f} ({r['wiebe_m_lo']:.2f}-{r['wiebe_m_hi']:.2f}) "
+                     f"{r['ca50_deg_atdc']:>6.1f} {r['brake_power_err_pct']:>+8.2f}  {flags}{edge}")
+    return lines
+
+
+def summary_text(summary: dict) -> str:
+    """Console summary of :func:`calibrate_into`'s result: airflow, identification at the default and
+    at the jointly fitted eta_trans (per point, with CA50/power pass flags)."""
+    air = summary["airflow"]
+    idn = summary["identification"]
+    lines = ["Airflow match: " + ", ".join(f"{k} = {v:.4g} +- {air['ci95_assumed_noise'][k]:.2g}"
+                                         for k, v in air["parameters"].items()),
+             f"  max |Ga_REL| {air['max_abs_ga_rel_pct']:.2f} %, rms {air['rms_ga_rel_pct']:.2f} %; outside +-1 %: "
+             + (", ".join(f"{k} {v:+.2f} %" for k, v in air["misses_1pct"].items()) or "none"),
+             f"Identification at eta_trans = {idn['eta_trans']:g} (default): {idn['fit_ok']} of {idn['points']} "
+             "points meet brake power +-1 % and CA50 8-10 deg ATDC"]
+    lines += _point_lines(idn["per_point"])
+    je = summary["joint_eta"]
+    for g in je["groups"]:
+        lines.append(f"Joint fit, throttle {g['throttle_pct']:g} %: shared eta_trans = {g['eta_trans']:.3f} "
+                     f"(95 % {g['ci95'][0]:.3f}-{g['ci95'][1]:.3f}, {g['points']} points)"
+                     + ("" if g["identifiable"] else f"; NOT identified by the data: {g['note']}"))
+    lines.append(f"Identification at the joint eta_trans: {je['fit_ok']} of {je['points']} points meet power and CA50")
+    lines += _point_lines(je["per_point"])
+    lines.append(f"wall time {summary['wall_s']:.0f} s (airflow {air['seconds']:.0f} s, {air['simulations']} "
+                 f"simulations; identification {idn['seconds']:.0f} s, {idn['simulations']} simulations)")
+    return "\n".join(lines)
 
 
 @flow(name="calibrate", log_prints=False, validate_parameters=False)
@@ -177,5 +257,6 @@ def run_calibration(out, bench=None, spec=None, **kwargs) -> dict:
     cal.grid_axes(kwargs.get("n_bdur", 11), kwargs.get("n_m", 13))   # bad grid sizes fail before any work
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = calibrate_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
-    print(json.dumps(res, indent=1, default=str)[:4000])
+    print(summary_text(res))
+    print(f"(full summary: {Path(out) / 'summary.json'})")
     return res

@@ -215,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--n-bdur", type=int, default=11, help="BDUR10-90 grid points over 20-50 deg (default 11)")
     c.add_argument("--n-m", type=int, default=13, help="Wiebe m grid points over 2-8 (default 13)")
     c.add_argument("--airflow-grid", default="6x6x1",
-                   help="coarse airflow search per parameter (exhaust x intake runner x restrictor Cd; default 6x6x1)")
+                   help="coarse airflow search per parameter (exhaust x intake runner x diffuser recovery; default 6x6x1)")
     c.add_argument("--airflow-max-nfev", type=int, default=12, help="least-squares iteration cap (default 12)")
     c.add_argument("--airflow-step-deg", type=float, default=1.0,
                    help="crank step of the airflow match [deg] (default 1.0; airflow within 0.2 %% of 0.5 deg)")

@@ -36,7 +36,19 @@ def test_mbc_calibrate_reduced(prefect_api, tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["identification"]["simulations"] == 2 * 16
     assert set(summary["airflow"]["parameters"]) == {"exhaust.runner_length_m", "intake.runner_length_m",
-                                                     "intake.restrictor_cd"}
+                                                     "intake.restrictor_recovery"}
+    # identification at the default eta and at the jointly fitted shared eta, per point with pass flags
+    idn, je = summary["identification"], summary["joint_eta"]
+    assert idn["eta_trans"] == 0.95 and [r["point_id"] for r in idn["per_point"]] == ["wot_9000", "wot_10500"]
+    assert all({"power_ok", "ca50_ok", "fit_ok", "bdur_10_90_deg_lo", "wiebe_m_hi"} <= set(r) for r in idn["per_point"])
+    assert idn["fit_ok"] == sum(r["fit_ok"] for r in idn["per_point"])
+    g = je["groups"][0]
+    assert g["throttle_pct"] == 100 and g["ci95"][0] <= g["eta_trans"] <= g["ci95"][1]
+    joint_par = pd.read_parquet(out / "combustion_params_joint_eta.parquet")
+    assert set(PARAM_COLUMNS) <= set(joint_par.columns) and (joint_par["eta_trans"] == g["eta_trans"]).all()
+    text = capsys.readouterr().out
+    assert "Identification at eta_trans = 0.95 (default)" in text and "shared eta_trans" in text
+    assert "wot_10500" in text
     for f in ("calibration.md", "calibration.html", "eta_sensitivity.parquet", "eta_relation.parquet",
               "figures/ga_rel_vs_speed.png", "figures/plane_wot_9000.png", "figures/eta_relation.png"):
         assert (out / f).is_file(), f

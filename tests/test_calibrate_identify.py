@@ -148,3 +148,20 @@ def test_bsfc_term_refers_measured_bsfc_to_the_crank(case):
     r = cal.identify(b, res, eta_trans=ETA).table.iloc[0]
     assert r["terms"] == "power,pmax,bsfc"
     assert abs(r["bsfc_err_pct"]) < 0.3 and abs(r["brake_power_err_pct"]) < 0.3
+
+
+def test_identify_at_eta_matches_a_fresh_identification_and_flags_misses(case):
+    bench, _, res = case
+    b = bench.drop(columns=["exhaust_temp_k"])
+    base = cal.identify(b, res, eta_trans=ETA)
+    again = cal.identify(b, res, eta_trans=0.92).table.iloc[0]
+    moved = cal.identify_at_eta(base, {100.0: 0.92}).table.iloc[0]
+    for c in ("bdur_10_90_deg", "wiebe_m", "bdur_10_90_deg_lo", "wiebe_m_hi", "brake_power_err_pct"):
+        assert moved[c] == pytest.approx(again[c]), c
+    assert moved["eta_trans"] == 0.92 and list(base.table.columns) == list(cal.identify_at_eta(base, 0.92).table.columns)
+    # pass flags: at the true eta power and CA50 are met; at eta 0.70 the crank target (+36 %) is out of reach
+    r = base.table.iloc[0]
+    assert r["power_ok"] and r["ca50_ok"] and r["fit_ok"]
+    far = cal.identify_at_eta(base, 0.70).table.iloc[0]
+    assert not far["power_ok"] and not far["fit_ok"] and "power" in far["status"]
+    assert abs(far["brake_power_err_pct"]) > 1.0
