@@ -84,8 +84,11 @@ def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_d
 @flow(name="gap-benchmark", log_prints=False, validate_parameters=False)
 def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str | None = None,
                        workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
-                       progress: bool = False) -> dict:
-    """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report)."""
+                       progress: bool = False, seed_start: int = 0) -> dict:
+    """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report).
+
+    Noise seeds ``seed_start .. seed_start + seeds - 1`` (fresh seeds check rules chosen on earlier ones).
+    """
     from engine_model.gap.benchmark import BENCH_SOLVER, run_benchmark
     from engine_model.gap.report import write_benchmark_report
 
@@ -93,7 +96,8 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
     with shared_cluster(workers, dask_address) as addr:
         ev = SweepEvaluator(Path(out) / "sweeps", addr, spec=spec, step_deg=BENCH_SOLVER.step_deg,
                             tolerance=BENCH_SOLVER.tolerance, label="bench", progress=progress)
-        res = run_benchmark(seeds=seeds, spec=load_spec(spec), evaluate=ev, progress=print, **kw)
+        res = run_benchmark(seeds=seeds, spec=load_spec(spec), evaluate=ev, progress=print, seed_start=seed_start,
+                            **kw)
     paths = write_benchmark_report(res, out)
     s = res["summary"]
     return {"csv": str(paths["csv"]), "trials": len(res["table"]), "timing": res["timing"],
@@ -101,7 +105,7 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
 
 
 def small_settings() -> dict:
-    """``--small``: a few effects, one magnitude, a 20-point DOE (minutes, not tens of minutes)."""
+    """``--small``: a few effects, one magnitude, a 20-point DOE (5 spark sweeps of 4; minutes, not tens)."""
     return {"effects": ["transmission_efficiency", "heat_transfer", "restrictor", "combustion_efficiency"],
             "magnitudes": (1.0,), "n_points": 20, "n_noise": 100}
 
