@@ -29,7 +29,7 @@ def _knock_model(limit_offset):
 def test_sweep_plan_layout_and_knock_backoff():
     # knock limit 5 deg below the MBT prior below 9000 rpm, none (30 deg beyond) above
     ev = _knock_model(lambda n: np.where(n < 9000.0, 5.0, -30.0))
-    plan = benchmark_plan(32, seed=0, evaluate=ev)
+    plan = benchmark_plan(32, seed=0, evaluate=ev, design="sweep")
     assert len(plan) == 32
     assert plan["point_id"].is_unique
     ops = plan.groupby("op_id", sort=False)
@@ -58,7 +58,7 @@ def test_sobol_design_kept_and_bad_design_rejected():
     with pytest.raises(ValueError, match="design 'grid' unknown"):
         benchmark_plan(12, evaluate=ev, design="grid")
     with pytest.raises(ValueError, match="sweep_steps"):
-        benchmark_plan(12, evaluate=ev, sweep_steps=2)
+        benchmark_plan(12, evaluate=ev, design="sweep", sweep_steps=2)
 
 
 def test_folds_keep_a_sweep_together():
@@ -78,7 +78,7 @@ def test_folds_keep_a_sweep_together():
 
 def test_base_gets_the_spark_slope_only_from_sweeps():
     ev = _knock_model(lambda n: np.full_like(n, -30.0))
-    sweep = choose_base(benchmark_plan(32, evaluate=ev))
+    sweep = choose_base(benchmark_plan(32, evaluate=ev, design="sweep"))
     assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
     scattered = choose_base(benchmark_plan(32, evaluate=ev, design="sobol"))
     assert scattered.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
