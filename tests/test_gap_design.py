@@ -84,3 +84,18 @@ def test_base_gets_the_spark_slope_only_from_sweeps():
     assert scattered.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
     table2 = choose_base(load_bench(None))          # one WOT line, one spark per speed
     assert table2.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm")
+
+
+def test_scattered_points_keep_the_earlier_folds():
+    # one point per operating point (Sobol' design, Table 2): grouping by operating point must give exactly
+    # the folds of the earlier per-point assignment (a random permutation of the valid points, cycled over k)
+    rng = np.random.default_rng(5)
+    pts = pd.DataFrame({"speed_rpm": rng.uniform(6000, 12500, 20), "throttle_pct": rng.uniform(30, 100, 20),
+                        "lambda": 0.9, "spark_deg_btdc": 40.0})
+    valid = np.ones(20, bool)
+    valid[[3, 11]] = False
+    new = _make_folds(20, valid, 5, seed=0, groups=operating_point_groups(pts))
+    idx = np.flatnonzero(valid)
+    old = np.full(20, -1)
+    old[idx[np.random.default_rng(0).permutation(idx.size)]] = np.arange(idx.size) % 5
+    np.testing.assert_array_equal(new, old)
