@@ -106,7 +106,7 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
 
 
 def small_settings() -> dict:
-    """``--small``: a few effects, one magnitude, a 20-point DOE (5 spark sweeps of 4; minutes, not tens)."""
+    """``--small``: a few effects, one magnitude, a 20-point DOE (minutes, not tens of minutes)."""
     return {"effects": ["transmission_efficiency", "heat_transfer", "restrictor", "combustion_efficiency"],
             "magnitudes": (1.0,), "n_points": 20, "n_noise": 100}
 
