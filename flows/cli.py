@@ -160,7 +160,7 @@ def cmd_gap_benchmark(args) -> int:
     from .gap import run_gap_benchmark
 
     run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
-                      dask_address=args.dask_address)
+                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design)
     return 0
 
 
@@ -264,6 +264,10 @@ def build_parser() -> argparse.ArgumentParser:
     gb = sub.add_parser("gap-benchmark", help="gap diagnosis on withheld effects -> <out>/gap/gap_benchmark.csv")
     gb.add_argument("--out", required=True, help="output folder")
     gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
+    gb.add_argument("--seed-start", type=int, default=0,
+                    help="first noise seed (default 0); e.g. 5 for fresh seeds after tuning on 0-4")
+    gb.add_argument("--design", choices=("sobol", "sweep"), default="sobol",
+                    help="benchmark DOE: 32 scattered points (default) or 8 operating points x 4-spark sweeps")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)

@@ -8,7 +8,7 @@ import pandas as pd
 from ..spec import EngineSpec, default_spec
 from .diagnose import GapDiagnosis, check_bench_outputs, diagnose
 from .effects import ETA_TRANS_BASE
-from .linear import COMBUSTION_BASE, BaseModel, calibrate_base, linearise
+from .linear import SWEEP_BASE, BaseModel, calibrate_base, linearise
 
 __all__ = ["choose_base", "diagnose_bench"]
 
@@ -20,13 +20,25 @@ def choose_base(bench: pd.DataFrame) -> BaseModel:
 
     Map-wide data: :data:`~engine_model.gap.linear.COMBUSTION_BASE` (BDUR10-90 offset, speed and load
     slopes).  A load term needs throttle variation (> 1 %); on a single load line (the paper's Table 2)
-    the base is BDUR10-90 offset + speed slope.
+    the base is BDUR10-90 offset + speed slope.  When the operating points are run as spark sweeps (at
+    least 3 sparks spanning >= 6 deg at a typical operating point) the burn's spark slope is added: the
+    sweep measures it, and without it the base would misread the torque-over-spark curvature (the burn
+    lengthens with advance, [H] sec. 9.3; see :mod:`engine_model.identify_sweep`).
     """
+    from .diagnose import operating_point_groups
+
     t = bench["throttle_pct"].to_numpy(float)
     params = ["bdur_offset_deg", "bdur_speed_deg_per_krpm"]
     if np.ptp(t) > 1.0:
         params.append("bdur_load_deg")
-    return BaseModel(params=tuple(p for p in COMBUSTION_BASE if p in params))
+    if "lambda" in bench.columns and len(bench):
+        g = operating_point_groups(bench)
+        s = pd.Series(bench["spark_deg_btdc"].to_numpy(float))
+        span = s.groupby(g).agg(lambda x: float(np.ptp(x)))
+        count = s.groupby(g).nunique()
+        if float(np.median(span)) >= 6.0 and float(np.median(count)) >= 3:
+            params.append("bdur_spark_deg_per_10deg")
+    return BaseModel(params=tuple(p for p in SWEEP_BASE if p in params))
 
 
 def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None, base: BaseModel | None = None,

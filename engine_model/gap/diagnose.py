@@ -210,12 +210,29 @@ def _heldout(prob: _Problem, cand: str | None, folds: np.ndarray, r: np.ndarray 
     return float(pred_res @ pred_res), pred_res
 
 
-def _make_folds(n_points: int, valid_points: np.ndarray, k: int, seed: int) -> np.ndarray:
+def operating_point_groups(points: pd.DataFrame) -> np.ndarray:
+    """Operating-point index of each plan row: rows with the same speed, throttle and lambda (a spark sweep).
+
+    Speeds are compared to 1 rpm, throttle to 0.1 %, lambda to 0.001.
+    """
+    key = pd.DataFrame({"n": np.round(points["speed_rpm"].to_numpy(float)),
+                        "t": np.round(points["throttle_pct"].to_numpy(float), 1),
+                        "l": np.round(points["lambda"].to_numpy(float), 3) if "lambda" in points.columns else 0.0})
+    return key.groupby(["n", "t", "l"], sort=False).ngroup().to_numpy()
+
+
+def _make_folds(n_points: int, valid_points: np.ndarray, k: int, seed: int,
+                groups: np.ndarray | None = None) -> np.ndarray:
+    """Fold of each point; all points of one operating point (a spark sweep) share a fold, so a held-out
+    point is never predicted from its own sweep's other sparks."""
     folds = np.full(n_points, -1)
-    idx = np.flatnonzero(valid_points)
-    k = max(2, min(k, idx.size))
-    perm = np.random.default_rng(seed).permutation(idx.size)
-    folds[idx[perm]] = np.arange(idx.size) % k
+    groups = np.arange(n_points) if groups is None else np.asarray(groups)
+    ug = np.unique(groups[valid_points])
+    k = max(2, min(k, ug.size))
+    perm = np.random.default_rng(seed).permutation(ug.size)
+    fold_of_group = dict(zip(ug[perm], np.arange(ug.size) % k))
+    for i in np.flatnonzero(valid_points):
+        folds[i] = fold_of_group[groups[i]]
     return folds
 
 
@@ -432,11 +449,11 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         a_, b_ = (prm.lo - prm.neutral) / steps[j], (prm.hi - prm.neutral) / steps[j]
         lo[j], hi[j] = min(a_, b_), max(a_, b_)
     prob = _Problem(r=r, a=a_full, point=pidx, output=oidx, base_cols=base_cols, cand_cols=cand_cols, lo=lo, hi=hi)
-    folds = _make_folds(n, point_valid, k_folds, seed)
+    folds = _make_folds(n, point_valid, k_folds, seed, operating_point_groups(lin.points))
     nobs = r.size
 
     # ---- noise calibration (same design, pure noise)
-    key = (tuple(pidx), tuple(oidx), tuple(cands), k_folds, seed, n_noise, alpha)
+    key = (tuple(pidx), tuple(oidx), tuple(folds), tuple(cands), k_folds, seed, n_noise, alpha)
     if noise_cache is not None and key in noise_cache:
         thr, q_chi2, noise_best = noise_cache[key]
     else:

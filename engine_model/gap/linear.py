@@ -42,7 +42,7 @@ from .. import doe
 from ..spec import EngineSpec, default_spec
 from .effects import ETA_TRANS_BASE, EFFECTS, apply_effects, check_effects, get_effect, post_effects
 
-__all__ = ["BaseParam", "BaseModel", "BASE_PARAMS", "Linearisation", "linearise", "model_outputs",
+__all__ = ["BaseParam", "BaseModel", "BASE_PARAMS", "COMBUSTION_BASE", "SWEEP_BASE", "Linearisation", "linearise", "model_outputs",
            "MODEL_OUTPUTS", "calibrate_base"]
 
 #: Outputs the diagnosis can compare (bench-contract names, measured units; torque behind the gearbox).
@@ -89,6 +89,10 @@ BASE_PARAMS: dict[str, BaseParam] = {p.name: p for p in (
 #: and so make every torque-loss effect (transmission, heat transfer, friction, combustion efficiency,
 #: blow-by) look alike.  The null case stays clean with both (no false claim in 3 trials).
 COMBUSTION_BASE = ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+
+#: Base for spark-sweep designs (several sparks per operating point): the map-wide base plus the burn's
+#: spark slope, which the sweeps measure (see :func:`engine_model.gap.api.choose_base`).
+SWEEP_BASE = COMBUSTION_BASE + ("bdur_spark_deg_per_10deg",)
 
 #: A more flexible base (for studies of the trade-off above).
 FLEXIBLE_BASE = ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg",

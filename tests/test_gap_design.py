@@ -1,0 +1,101 @@
+"""Benchmark DOE (spark sweeps with a knock back-off), operating-point folds and the base choice (no cycle model).
+
+A stand-in model gives the knock index as a known function of spark, so the operator's back-off and the
+sweep layout can be checked exactly without the cost of the simulator.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from engine_model import doe
+from engine_model.gap.api import choose_base
+from engine_model.gap.benchmark import SWEEP_STEP_DEG, SWEEP_STEPS, benchmark_plan
+from engine_model.gap.diagnose import _make_folds, operating_point_groups
+from engine_model.bench import load_bench
+
+
+def _knock_model(limit_offset):
+    """Knock index 1 at (MBT prior - limit_offset(speed)), rising 0.1 per deg of advance beyond it."""
+    def ev(p):
+        n = p["speed_rpm"].to_numpy(float)
+        t = p["throttle_pct"].to_numpy(float)
+        s = p["spark_deg_btdc"].to_numpy(float)
+        lim = np.atleast_1d(doe.spark_estimate(n, t)) - limit_offset(n)
+        return pd.DataFrame({"knock_index": 1.0 + 0.1 * (s - lim)})
+    return ev
+
+
+def test_sweep_plan_layout_and_knock_backoff():
+    # knock limit 5 deg below the MBT prior below 9000 rpm, none (30 deg beyond) above
+    ev = _knock_model(lambda n: np.where(n < 9000.0, 5.0, -30.0))
+    plan = benchmark_plan(32, seed=0, evaluate=ev, design="sweep")
+    assert len(plan) == 32
+    assert plan["point_id"].is_unique
+    ops = plan.groupby("op_id", sort=False)
+    assert ops.ngroups == 32 // SWEEP_STEPS
+    for _, g in ops:
+        assert g["speed_rpm"].nunique() == 1 and g["throttle_pct"].nunique() == 1 and g["lambda"].nunique() == 1
+        s = g.sort_values("sweep_step")["spark_deg_btdc"].to_numpy()
+        np.testing.assert_allclose(np.diff(s), SWEEP_STEP_DEG, atol=0.11)   # advancing, rounded to 0.1 deg
+        n, t = g["speed_rpm"].iloc[0], g["throttle_pct"].iloc[0]
+        top = float(doe.spark_estimate(n, t))
+        # the operator backs off in 4 deg steps until the model's knock index is below 0.85:
+        # limit 5 deg below MBT -> index 1.5 at MBT, 1.1 at -4, 0.7 at -8 -> top of the sweep at MBT - 8
+        expect = 8.0 if n < 9000.0 else 0.0
+        assert g["knock_retard_deg"].iloc[0] == expect
+        assert s[-1] == pytest.approx(top - expect, abs=0.06)
+    # one operating point per speed stratum (scrambled Sobol'): speeds spread over the whole range
+    sp = np.sort(plan.groupby("op_id")["speed_rpm"].first().to_numpy())
+    assert sp[0] < 6000 + 6500 / 8 and sp[-1] > 12500 - 6500 / 8
+    assert np.all(np.diff(np.floor((sp - 6000.0) / (6500.0 / 8))) == 1)
+
+
+def test_sobol_design_kept_and_bad_design_rejected():
+    ev = _knock_model(lambda n: np.full_like(n, -30.0))
+    plan = benchmark_plan(12, seed=0, evaluate=ev, design="sobol")
+    assert len(plan) == 12 and plan["op_id"].is_unique
+    with pytest.raises(ValueError, match="design 'grid' unknown"):
+        benchmark_plan(12, evaluate=ev, design="grid")
+    with pytest.raises(ValueError, match="sweep_steps"):
+        benchmark_plan(12, evaluate=ev, design="sweep", sweep_steps=2)
+
+
+def test_folds_keep_a_sweep_together():
+    pts = pd.DataFrame({"speed_rpm": np.repeat([7000.0, 8000.0, 9000.0, 10000.0, 11000.0, 12000.0], 4),
+                        "throttle_pct": np.repeat([40.0, 100.0, 70.0, 100.0, 55.0, 90.0], 4),
+                        "lambda": 0.9, "spark_deg_btdc": np.tile([30.0, 34.0, 38.0, 42.0], 6)})
+    g = operating_point_groups(pts)
+    assert len(np.unique(g)) == 6
+    folds = _make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1, groups=g)
+    for k in np.unique(g):
+        assert np.unique(folds[g == k]).size == 1
+    assert np.unique(folds).size == 5
+    # without groups (scattered points) every point is its own unit, as before
+    f0 = _make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1)
+    assert not all(np.unique(f0[g == k]).size == 1 for k in np.unique(g))
+
+
+def test_base_gets_the_spark_slope_only_from_sweeps():
+    ev = _knock_model(lambda n: np.full_like(n, -30.0))
+    sweep = choose_base(benchmark_plan(32, evaluate=ev, design="sweep"))
+    assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
+    scattered = choose_base(benchmark_plan(32, evaluate=ev, design="sobol"))
+    assert scattered.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    table2 = choose_base(load_bench(None))          # one WOT line, one spark per speed
+    assert table2.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm")
+
+
+def test_scattered_points_keep_the_earlier_folds():
+    # one point per operating point (Sobol' design, Table 2): grouping by operating point must give exactly
+    # the folds of the earlier per-point assignment (a random permutation of the valid points, cycled over k)
+    rng = np.random.default_rng(5)
+    pts = pd.DataFrame({"speed_rpm": rng.uniform(6000, 12500, 20), "throttle_pct": rng.uniform(30, 100, 20),
+                        "lambda": 0.9, "spark_deg_btdc": 40.0})
+    valid = np.ones(20, bool)
+    valid[[3, 11]] = False
+    new = _make_folds(20, valid, 5, seed=0, groups=operating_point_groups(pts))
+    idx = np.flatnonzero(valid)
+    old = np.full(20, -1)
+    old[idx[np.random.default_rng(0).permutation(idx.size)]] = np.arange(idx.size) % 5
+    np.testing.assert_array_equal(new, old)
