@@ -249,7 +249,8 @@ def build_load_table(spec, evaluate: Callable[[pd.DataFrame], pd.DataFrame] | No
     if len(res) != len(plan):
         raise ValueError(f"build_load_table: evaluate returned {len(res)} rows for a plan of {len(plan)} points")
     if quantity == "plenum_pressure_ratio":
-        val = pd.to_numeric(res["plenum_pressure_bar"], errors="coerce").to_numpy(float) * 1e5 / plan["p_amb_pa"].to_numpy()
+        p_bar = pd.to_numeric(res["plenum_pressure_bar"], errors="coerce").to_numpy(float)
+        val = p_bar * 1e5 / plan["p_amb_pa"].to_numpy(float)
     else:
         val = pd.to_numeric(res["vol_eff"], errors="coerce").to_numpy(float)
     ok = np.isfinite(val) & (val > 0) & res["converged"].astype(bool).to_numpy()

@@ -481,7 +481,8 @@ def fitted_map():
     res = build_maps(spec, model, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
     sweeps = {}
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
-        sweeps[int(cell["cell"])] = _fine_sweep(spec, law, cell, cell["spark_deg_btdc"] - 10, cell["spark_deg_btdc"] + 10)
+        s0 = cell["spark_deg_btdc"]
+        sweeps[int(cell["cell"])] = _fine_sweep(spec, law, cell, s0 - 10, s0 + 10)
     return res, sweeps
 
 
