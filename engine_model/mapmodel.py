@@ -45,10 +45,14 @@ from .surrogates import FAMILIES, make_family
 
 __all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT"]
 
-#: ``kind`` tag and version of the saved JSON.
-FORMAT = {"kind": "mbc_map_model", "version": 1}
+#: ``kind`` tag and version of the saved JSON (version 2 adds the load table; version 1 files still load).
+FORMAT = {"kind": "mbc_map_model", "version": 2}
+_READABLE_VERSIONS = (1, 2)
 
 _SPARK_REFS = ("estimate", "absolute")
+_EXTRAPOLATION = ("clamp", "linear", "extend")
+_FD_STEP = 0.02  # coded-unit step of the one-sided gradient used by extrapolation='linear' (1 % of the range)
+_LINEAR_REACH = 1.0  # extrapolation='linear' continues at most this far beyond the box [coded units], then flat
 _STD_SCALE_RANGE = (0.5, 5.0)  # limits of the CV calibration factor of the predicted std
 
 
@@ -86,11 +90,24 @@ class MapModel:
         to n if fewer points).
     seed : int
         Seed of the fold split and of the GP restarts.
-    extrapolation : {'clamp', 'extend'}
+    extrapolation : {'clamp', 'linear', 'extend'}
         Outside the training box: 'clamp' evaluates the model at the nearest
         point of the box (a flat continuation: a cubic surface cannot run away
         when the table builder searches spark beyond the planned range);
-        'extend' evaluates the surface as it is.  Either way the row is flagged.
+        'linear' continues it along its gradient at that point (first-order
+        Taylor continuation: the trend, e.g. a longer burn at more advance,
+        carries on, the curvature does not) for up to half the training range
+        beyond the edge, flat after that; 'extend' evaluates the surface
+        as it is.  Either way the row is flagged.
+    load_table : LoadTable, optional
+        With a table (:func:`engine_model.load_table.build_load_table`: the
+        calibrated simulator's plenum pressure ratio or volumetric efficiency
+        over throttle x speed), the throttle factor enters as that *load*
+        (coordinate ``load`` in ``ranges_``), not as throttle angle: the burn
+        follows charge density and dilution, which are strongly nonlinear in
+        throttle at part load.  The table is stored in the model file; its
+        spec hash must match the fit's.  A point outside the table's grid is
+        flagged as extrapolation.
 
     Attributes (after ``fit``)
     ----------
@@ -101,7 +118,8 @@ class MapModel:
         fitted noise variance (clipped to 0.5-5); a polynomial's coefficient
         std ignores the bias of a low-order surface, this puts it back
     models_ : dict output -> fitted estimator
-    ranges_ : dict factor -> (low, high) in model coordinates (spark as offset)
+    ranges_ : dict coordinate -> (low, high) in model coordinates (spark as offset; ``load`` in
+        place of ``throttle_pct`` with a load table)
     fixed_factors_ : dict factor -> value, factors constant in the data
     n_points_ : int, rows used; excluded_ : list of point ids (or row numbers)
         left out because an output was missing (failed identification)
@@ -109,7 +127,8 @@ class MapModel:
     """
 
     def __init__(self, *, families=("poly", "gp"), factors=INPUT_COLUMNS, outputs=OUTPUT_COLUMNS,
-                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp"):
+                 spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp",
+                 load_table=None, output_transform: str = "none"):
         self.families = tuple(families)
         self.factors = tuple(factors)
         self.outputs = tuple(outputs)
@@ -117,6 +136,8 @@ class MapModel:
         self.k_folds = k_folds
         self.seed = seed
         self.extrapolation = extrapolation
+        self.load_table = load_table
+        self.output_transform = output_transform
 
     # ------------------------------------------------------------------ inputs
     def _check_settings(self):
@@ -134,8 +155,18 @@ class MapModel:
             raise ValueError(f"MapModel: k_folds = {self.k_folds!r} must be an integer >= 2")
         if not self.outputs:
             raise ValueError("MapModel: no outputs")
-        if self.extrapolation not in ("clamp", "extend"):
-            raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose 'clamp' or 'extend'")
+        if self.output_transform not in ("none", "log"):
+            raise ValueError(f"MapModel: output_transform = {self.output_transform!r}; choose 'none' or 'log'")
+        if self.extrapolation not in _EXTRAPOLATION:
+            raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose from {_EXTRAPOLATION}")
+        if self.load_table is not None:
+            from .load_table import LoadTable
+            if not isinstance(self.load_table, LoadTable):
+                raise ValueError(f"MapModel: load_table must be an engine_model.load_table.LoadTable, got "
+                                 f"{type(self.load_table).__name__}")
+            if "throttle_pct" not in self.factors:
+                raise ValueError("MapModel: a load_table replaces the throttle factor; 'throttle_pct' is not among "
+                                 f"the factors {list(self.factors)}")
 
     def _model_coords(self, points: pd.DataFrame, who: str) -> dict[str, np.ndarray]:
         x = check_points(points, who)
@@ -144,7 +175,15 @@ class MapModel:
 
             x["spark_deg_btdc"] = x["spark_deg_btdc"] - np.atleast_1d(
                 spark_estimate(x["speed_rpm"], x["throttle_pct"]))
-        return {f: x[f] for f in self.factors}
+        out = {f: x[f] for f in self.factors}
+        if self.load_table is not None:
+            out["load"] = self.load_table(x["throttle_pct"], x["speed_rpm"])
+            del out["throttle_pct"]
+        return out
+
+    def _coordinates(self) -> tuple[str, ...]:
+        """Model coordinates in factor order (``load`` in place of ``throttle_pct`` with a load table)."""
+        return tuple("load" if (f == "throttle_pct" and self.load_table is not None) else f for f in self.factors)
 
     def _coded(self, xm: dict[str, np.ndarray]) -> np.ndarray:
         cols = [2.0 * (xm[f] - lo) / (hi - lo) - 1.0 for f, (lo, hi) in self.ranges_.items()]
@@ -176,6 +215,8 @@ class MapModel:
         self
         """
         self._check_settings()
+        if self.load_table is not None:
+            self.load_table.check_spec(spec)
         missing = [c for c in self.outputs if c not in data.columns]
         if missing:
             raise ValueError(f"MapModel.fit: data lack output column(s) {missing}")
@@ -189,7 +230,17 @@ class MapModel:
             raise ValueError(f"MapModel.fit: only {n} rows with finite outputs (need >= 6); "
                              f"excluded: {self.excluded_[:10]}")
         self.ranges_, self.fixed_factors_ = {}, {}
-        for f in self.factors:
+        if self.load_table is not None:
+            xd = check_points(data, "MapModel.fit")
+            out = ~self.load_table.covers(xd["throttle_pct"], xd["speed_rpm"]) & ok
+            if out.any():
+                i = int(np.flatnonzero(out)[0])
+                raise ValueError(f"MapModel.fit: data row {i} (throttle {xd['throttle_pct'][i]:g} %, speed "
+                                 f"{xd['speed_rpm'][i]:g} rpm) lies outside the load table's grid (throttle "
+                                 f"{self.load_table.throttle_pct[0]:g}-{self.load_table.throttle_pct[-1]:g} %, speed "
+                                 f"{self.load_table.speed_rpm[0]:g}-{self.load_table.speed_rpm[-1]:g} rpm); "
+                                 "rebuild the table over the data")
+        for f in self._coordinates():
             v = xm[f][ok]
             lo, hi = float(v.min()), float(v.max())
             if hi - lo <= 1e-9 * max(1.0, abs(hi)):
@@ -203,10 +254,18 @@ class MapModel:
         folds = kfold_indices(n, k, self.seed)
         self.cv_rmse_, self.chosen_, self.models_, self.std_scale_ = {}, {}, {}, {}
         for o in self.outputs:
-            y = ys[o][ok]
+            y_out = ys[o][ok]
             ystd = None
             if f"{o}_std" in data.columns:
                 ystd = pd.to_numeric(data[f"{o}_std"], errors="coerce").to_numpy(float)[ok]
+            if self.output_transform == "log":
+                if np.any(y_out <= 0):
+                    i = int(np.flatnonzero(y_out <= 0)[0])
+                    raise ValueError(f"MapModel.fit: output_transform='log' needs {o} > 0; row {i} has {y_out[i]!r}")
+                y = np.log(y_out)
+                ystd = None if ystd is None else ystd / y_out      # delta method: std of log y
+            else:
+                y = y_out
             scores, calib = {}, {}
             for fam in self.families:
                 err, sd, noise = np.empty(n), np.empty(n), np.empty(n)
@@ -215,8 +274,12 @@ class MapModel:
                     est = make_family(fam, self.seed).fit(x[train], y[train],
                                                           None if ystd is None else ystd[train])
                     mean, sd[test] = est.predict(x[test])
-                    err[test] = mean - y[test]
                     noise[test] = est.noise_variance() + (0.0 if ystd is None else np.nan_to_num(ystd[test]) ** 2)
+                    if self.output_transform == "log":   # CV error, std and noise in the output's own unit
+                        mean = np.exp(mean)
+                        sd[test] *= mean
+                        noise[test] *= mean ** 2
+                    err[test] = mean - y_out[test]
                 scores[fam] = float(math.sqrt(np.mean(err**2)))
                 # held-out err^2 = (model error)^2 + noise: scale the std so that it matches the model error
                 ratio = (np.mean(err**2) - np.mean(noise)) / max(float(np.mean(sd**2)), 1e-300)
@@ -256,18 +319,48 @@ class MapModel:
         xm = self._model_coords(points, "MapModel.predict")
         x = self._coded(xm)
         out = {}
-        xe = np.clip(x, -1.0, 1.0) if self.extrapolation == "clamp" else x
+        xe = x if self.extrapolation == "extend" else np.clip(x, -1.0, 1.0)
         for o in self.outputs:
             with single_thread_blas():
                 mean, std = self.models_[o].predict(xe)
+                if self.extrapolation == "linear":
+                    mean = mean + self._linear_continuation(self.models_[o], x, xe, mean)
+            if self.output_transform == "log":
+                mean = np.exp(mean)
+                std = std * mean                           # delta method
             out[o], out[f"{o}_std"] = mean, std * self.std_scale_.get(o, 1.0)
         extra = np.zeros(len(points), dtype=bool)
         if x.size:
             extra |= np.any(np.abs(x) > 1.02, axis=1)
         for f, v in self.fixed_factors_.items():
             extra |= np.abs(xm[f] - v) > 1e-6 * max(1.0, abs(v))
+        if self.load_table is not None:
+            xp = check_points(points, "MapModel.predict")
+            extra |= ~self.load_table.covers(xp["throttle_pct"], xp["speed_rpm"])
         out["extrapolation"] = extra
         return pd.DataFrame(out, index=points.index)
+
+    @staticmethod
+    def _linear_continuation(est, x: np.ndarray, xc: np.ndarray, mean_c: np.ndarray) -> np.ndarray:
+        """g . (x - xc) for rows outside the box: g the one-sided (inward) difference gradient at the clamped xc."""
+        add = np.zeros(len(x))
+        outside = np.any(np.abs(x - xc) > 0.0, axis=1)
+        if not outside.any():
+            return add
+        xo, co, mo = x[outside], xc[outside], mean_c[outside]
+        for j in range(x.shape[1]):
+            dx = np.clip(xo[:, j] - co[:, j], -_LINEAR_REACH, _LINEAR_REACH)
+            sel = dx != 0.0
+            if not sel.any():
+                continue
+            step = -_FD_STEP * np.sign(dx[sel])          # step back into the box
+            probe = co[sel].copy()
+            probe[:, j] += step
+            grad = (mo[sel] - est.predict(probe)[0]) / (-step)
+            part = np.zeros(len(xo))
+            part[sel] = grad * dx[sel]
+            add[outside] += part
+        return add
 
     def cv_table(self) -> pd.DataFrame:
         """K-fold CV RMSE per output and family: ``output, family, cv_rmse, chosen``."""
@@ -298,6 +391,8 @@ class MapModel:
                 "outputs": list(self.outputs), "spark_reference": self.spark_reference,
                 "k_folds": self.k_folds, "seed": self.seed, "extrapolation": self.extrapolation,
                 "spec_hash": self.spec_hash_,
+                "load_table": None if self.load_table is None else self.load_table.to_dict(),
+                "output_transform": self.output_transform,
                 "ranges": [[k, *v] for k, v in self.ranges_.items()],  # a list: JSON sorts keys, order matters
                 "fixed_factors": self.fixed_factors_,
                 "n_points": self.n_points_, "excluded": self.excluded_, "cv_rmse": self.cv_rmse_,
@@ -312,13 +407,18 @@ class MapModel:
         if d.get("kind") != FORMAT["kind"]:
             raise ValueError(f"{source}: not a map model file (kind = {d.get('kind')!r}, expected "
                              f"{FORMAT['kind']!r})")
-        if d.get("version") != FORMAT["version"]:
+        if d.get("version") not in _READABLE_VERSIONS:
             raise ValueError(f"{source}: map model format version {d.get('version')!r}; this code reads "
-                             f"{FORMAT['version']}")
+                             f"{list(_READABLE_VERSIONS)}")
         try:
+            table = d.get("load_table")
+            if table is not None:
+                from .load_table import LoadTable
+                table = LoadTable.from_dict(table)
             obj = cls(families=d["families"], factors=d["factors"], outputs=d["outputs"],
                       spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"],
-                      extrapolation=d.get("extrapolation", "clamp"))
+                      extrapolation=d.get("extrapolation", "clamp"), load_table=table,
+                      output_transform=d.get("output_transform", "none"))
             obj.spec_hash_ = d["spec_hash"]
             obj.ranges_ = {k: (float(lo), float(hi)) for k, lo, hi in d["ranges"]}
             obj.fixed_factors_ = {k: float(v) for k, v in d["fixed_factors"].items()}

@@ -171,3 +171,125 @@ def test_kfold_indices_partition():
     allidx = np.sort(np.concatenate(folds))
     assert np.array_equal(allidx, np.arange(23)) and len(folds) == 5
     assert all(len(f) in (4, 5) for f in folds)
+
+
+# --------------------------------------------------------------------------- load coordinate, output transform
+
+def _toy_load_table(spec_hash=None):
+    """A load table with a known, steep-then-flat shape (no simulation): pi = 1 - 0.8 exp(-t/20) - 2e-5 n/1000."""
+    from engine_model.load_table import LoadTable
+    t = (5.0, 10.0, 20.0, 30.0, 40.0, 60.0, 80.0, 100.0)
+    n = (2000.0, 5000.0, 8000.0, 11000.0, 14000.0)
+    v = [[1 - 0.8 * np.exp(-a / 20.0) - 0.02 * b / 1000.0 for b in n] for a in t]
+    return LoadTable(t, n, v, quantity="plenum_pressure_ratio", spec_hash=spec_hash)
+
+
+def test_load_table_interpolates_refuses_bad_grids_and_round_trips():
+    from engine_model.load_table import LoadTable
+    lt = _toy_load_table()
+    # PCHIP reproduces the nodes exactly and is monotone between them (the function is monotone in throttle)
+    np.testing.assert_allclose(lt(np.array(lt.throttle_pct), 8000.0), lt.array[:, 2], rtol=1e-12)
+    fine = lt(np.linspace(5, 100, 400), 6500.0)
+    assert np.all(np.diff(fine) > 0)
+    exact = 1 - 0.8 * np.exp(-np.linspace(5, 100, 400) / 20.0) - 0.02 * 6.5
+    assert np.max(np.abs(fine - exact)) < 0.01          # interpolation error of an 8-node PCHIP, well below the spread
+    assert list(lt.covers([50, 50, 3], [8000, 15000, 8000])) == [True, False, False]
+    assert LoadTable.from_dict(lt.to_dict()) == lt
+    with pytest.raises(ValueError, match=r"speed_rpm: breakpoints must be strictly ascending; 5000 at position 2"):
+        LoadTable((0, 10, 20, 30), (1000, 5000, 5000, 9000), np.ones((4, 4)))
+    with pytest.raises(ValueError, match=r"throttle 10 %, speed 5000 rpm: nan is not a finite number > 0"):
+        v = np.ones((4, 4)); v[1, 1] = np.nan
+        LoadTable((0, 10, 20, 30), (1000, 5000, 7000, 9000), v)
+    with pytest.raises(ValueError, match=r"shape \(3, 4\), expected \(4, 4\)"):
+        LoadTable((0, 10, 20, 30), (1000, 5000, 7000, 9000), np.ones((3, 4)))
+    with pytest.raises(ValueError, match=r"quantity = 'boost'"):
+        LoadTable((0, 10, 20, 30), (1000, 5000, 7000, 9000), np.ones((4, 4)), quantity="boost")
+
+
+def test_model_with_load_table_uses_load_and_checks_spec_and_coverage(tmp_path):
+    spec = default_spec()
+    lt = _toy_load_table(spec.spec_hash())
+    train = identified(64, 0)
+    m = MapModel(factors=FACTORS3, load_table=lt).fit(train, spec=spec)
+    assert "load" in m.ranges_ and "throttle_pct" not in m.ranges_
+    lo, hi = m.ranges_["load"]
+    lt_train = lt(train["throttle_pct"], train["speed_rpm"])
+    assert lo == pytest.approx(lt_train.min()) and hi == pytest.approx(lt_train.max())
+    # two throttles with the same load (same speed) get the same prediction: the model sees load, not throttle
+    a = pd.DataFrame({"throttle_pct": [60.0], "speed_rpm": [8000.0], "spark_deg_btdc": [40.0], "lambda": [0.9]})
+    lt_flat = type(lt)(lt.throttle_pct, lt.speed_rpm, np.where(np.array(lt.throttle_pct)[:, None] >= 60, 0.9,
+                                                                lt.array), spec_hash=spec.spec_hash())
+    m_flat = MapModel(factors=FACTORS3, load_table=lt_flat, spark_reference="absolute").fit(train, spec=spec)
+    b = a.assign(throttle_pct=[80.0])
+    np.testing.assert_allclose(m_flat.predict(a)["bdur_10_90_deg"], m_flat.predict(b)["bdur_10_90_deg"])
+    # recovery of the truth law as with throttle (64 points, noise 1.0 / 0.3): below the noise on new points
+    test = around_mbt(256, 99)
+    test = test[test["throttle_pct"] >= 5.0]
+    p, y = m.predict(test), LAW.predict(test)
+    assert np.sqrt(np.mean((p["bdur_10_90_deg"] - y["bdur_10_90_deg"]) ** 2)) < 1.0
+    assert np.sqrt(np.mean((p["wiebe_m"] - y["wiebe_m"]) ** 2)) < 0.3
+    # outside the table's grid: flagged
+    out = a.assign(speed_rpm=[15000.0])
+    assert bool(m.predict(out)["extrapolation"].iloc[0])
+    # saved and loaded with the table; old-format (version 1) files still load
+    path = m.save(tmp_path / "m.json")
+    m2 = MapModel.load(path, spec=spec)
+    pd.testing.assert_frame_equal(m.predict(test), m2.predict(test))
+    assert m2.load_table == lt
+    # a table of another engine, data outside the table, wrong type: refused with the reason
+    other = spec.with_values({"geometry.compression_ratio": 12.0})
+    with pytest.raises(ValueError, match=r"LoadTable: simulated for engine spec .* not for spec"):
+        MapModel(factors=FACTORS3, load_table=lt).fit(train, spec=other)
+    wide = train.assign(speed_rpm=np.where(np.arange(len(train)) == 5, 14500.0, train["speed_rpm"]))
+    with pytest.raises(ValueError, match=r"data row 5 \(throttle .* speed 14500 rpm\) lies outside the load table"):
+        MapModel(factors=FACTORS3, load_table=lt).fit(wide, spec=spec)
+    with pytest.raises(ValueError, match=r"load_table must be an engine_model.load_table.LoadTable"):
+        MapModel(load_table={"a": 1}).fit(train)
+
+
+def test_version_1_model_file_still_loads(fitted, tmp_path):
+    _, m = fitted
+    d = m.to_dict()
+    d["version"] = 1
+    for k in ("load_table", "output_transform"):
+        d.pop(k)
+    p = tmp_path / "v1.json"
+    p.write_text(json.dumps(d))
+    test = around_mbt(16, 5)
+    pd.testing.assert_frame_equal(MapModel.load(p).predict(test), m.predict(test))
+
+
+def test_log_output_transform_is_positive_and_recovers_the_law():
+    train = identified(64, 0)
+    m = MapModel(factors=FACTORS3, output_transform="log").fit(train)
+    test = around_mbt(512, 99)
+    p, y = m.predict(test), LAW.predict(test)
+    assert np.sqrt(np.mean((p["bdur_10_90_deg"] - y["bdur_10_90_deg"]) ** 2)) < 1.0
+    assert np.sqrt(np.mean((p["wiebe_m"] - y["wiebe_m"]) ** 2)) < 0.3
+    # CV errors are reported in the output's own unit (comparable with the untransformed model's)
+    assert 0.9 < min(m.cv_rmse_["bdur_10_90_deg"].values()) < 1.6
+    # far outside the data a log-model stays positive even when extended
+    far = pd.DataFrame({"throttle_pct": 50.0, "speed_rpm": 8000.0, "spark_deg_btdc": [-30.0, 90.0], "lambda": 1.0})
+    mx = MapModel(factors=FACTORS3, output_transform="log", extrapolation="extend").fit(train)
+    assert (mx.predict(far)[["bdur_10_90_deg", "wiebe_m"]].to_numpy() > 0).all()
+    with pytest.raises(ValueError, match=r"output_transform='log' needs wiebe_m > 0; row 3"):
+        MapModel(factors=FACTORS3, output_transform="log").fit(train.assign(
+            wiebe_m=np.where(np.arange(len(train)) == 3, -0.5, train["wiebe_m"])))
+    with pytest.raises(ValueError, match=r"output_transform = 'sqrt'"):
+        MapModel(output_transform="sqrt").fit(train)
+
+
+def test_linear_extrapolation_continues_the_edge_slope_then_holds():
+    # y = 20 + 3 x_spark exactly (coded): linear continuation reproduces it beyond the box, up to half the range
+    d, _ = synthetic(40, lambda x: 20 + 3 * x[:, 2], 0.0, 3)
+    m = MapModel(factors=FACTORS3, spark_reference="absolute", families=("poly",), extrapolation="linear").fit(d)
+    lo, hi = m.ranges_["spark_deg_btdc"]
+    half = 0.5 * (hi - lo)
+    s = np.array([hi + 0.2 * half, hi + 0.9 * half, hi + half + 1.0, 90.0])
+    assert s[2] < 90.0
+    pts = pd.DataFrame({"throttle_pct": 50.0, "speed_rpm": 8000.0, "spark_deg_btdc": s, "lambda": 0.9})
+    got = m.predict(pts)["bdur_10_90_deg"].to_numpy()
+    # synthetic() codes spark as (s - 35) / 25; the continuation reaches half the training range beyond the edge
+    np.testing.assert_allclose(got, 20 + 3 * (np.minimum(s, hi + half) - 35) / 25, atol=1e-6)
+    assert got[2] == pytest.approx(got[3])                 # flat beyond one coded unit
+    assert m.predict(pts)["extrapolation"].all()

@@ -452,20 +452,21 @@ def test_grid_from_an_ecu_table_csv(tmp_path):
         EcuGrid.from_csv(p)
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: at 30 % / 7000 rpm the fitted model puts the table spark "
-                   "~9 deg beyond the truth's MBT, costing 1.7 % torque (limit 1 %); the global model's error at "
-                   "the realistic identification noise is the open part of the map issue")
-def test_fitted_global_model_map_against_the_truth_mbt_and_torque():
-    """Issue acceptance with the *fitted* global model: a MapModel fitted on 48 noisy identifications of the hidden
-    law builds the table; the truth engine (hidden law) judges it.
+# --------------------------------------------------------------------------- acceptance with the fitted global model
+
+@pytest.fixture(scope="module")
+def fitted_map():
+    """A MapModel fitted on 48 noisy identifications of the hidden law builds the table; the truth judges it.
 
     Identification noise 1.7 deg on BDUR10-90 and 0.6 on m: what joint spark-sweep identification achieved against
-    the hidden law on the virtual bench (docs/sections/identify_sweep.md).  Pass: in every feasible cell, the
-    truth's torque at the table spark is within 1 % of the truth's best knock-safe torque, and where the table is
-    MBT-limited its MBT is within 2 deg of the truth's (parabola vertex of a 1-deg brute-force sweep).
+    the hidden law on the virtual bench (docs/sections/identify_sweep.md).  The model is the improved one of
+    docs/sections/mapmodel.md: log outputs and the simulated plenum-pressure ratio as the load coordinate (a load
+    table of the cycle model over the data's throttle 20-100 % x 5000-13000 rpm, the default breakpoints there).
+    Returns the built map and, per feasible cell, a 1-deg brute-force sweep of the truth +-10 deg around the table.
     """
     from engine_model import learning
     from engine_model.burnlaw import BurnLaw
+    from engine_model.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, build_load_table
     from engine_model.mapmodel import MapModel
 
     spec, law = default_spec(), BurnLaw()
@@ -474,12 +475,50 @@ def test_fitted_global_model_map_against_the_truth_mbt_and_torque():
     pts = learning._absolute_spark(pts)
     pts["point_id"] = [f"lhs{i}" for i in range(len(pts))]
     data = learning.noisy_truth(law, sigma_bdur_deg=1.7, sigma_m=0.6, seed=1)(pts)
-    model = MapModel().fit(data, spec)
+    table = build_load_table(spec, throttle_pct=[t for t in DEFAULT_THROTTLE_PCT if t >= 20],
+                             speed_rpm=[n for n in DEFAULT_SPEED_RPM if n >= 5000])
+    model = MapModel(output_transform="log", load_table=table).fit(data, spec)
     res = build_maps(spec, model, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
+    sweeps = {}
+    for _, cell in res.cells[res.cells["feasible"]].iterrows():
+        s0 = cell["spark_deg_btdc"]
+        sweeps[int(cell["cell"])] = _fine_sweep(spec, law, cell, s0 - 10, s0 + 10)
+    return res, sweeps
+
+
+def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
+    """Issue acceptance, torque part: in every feasible cell the truth's torque at the table spark is within 1 % of
+    the truth's best knock-safe torque (brute-force 1-deg sweep +-10 deg around the table value).
+
+    Measured (seed 1): torque ratio 0.996 / 0.991 / 0.998 / 0.995 at 30 % 7000 / 30 % 12000 / WOT 7000 / WOT 12000 rpm;
+    the untransformed throttle-coordinate model gave 0.986 at 30 % / 7000 rpm (fails).  30 % / 12000 rpm sits at
+    spark_max (70 deg) with the truth law itself too (0.991): the truth's MBT there is ~77 deg BTDC.
+    """
+    res, sweeps = fitted_map
+    lim = res.settings.knock_limit
+    assert len(sweeps) >= 3
+    for _, cell in res.cells[res.cells["feasible"]].iterrows():
+        fine = sweeps[int(cell["cell"])]
+        safe = fine[fine["knock_index"] < lim]
+        sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
+        at_table = float(np.interp(cell["spark_deg_btdc"], sp, tq))
+        assert at_table >= 0.99 * safe["brake_torque_nm"].max(), (cell["throttle_pct"], cell["speed_rpm"])
+
+
+@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: MBT is not within 2 deg of the truth's in any of the "
+                   "3 MBT-limited cells (30 % / 7000 rpm: table 36.4 vs truth 32.0 deg; WOT 7000: 31.3 vs 28.1; WOT "
+                   "12000: 64.0 vs 70.3).  Variance-limited: over 20 noise seeds the CA50-spark proxy of MBT scatters "
+                   "by 2-5 deg (1 sd) per cell for every model variant tried; see docs/sections/mapmodel.md")
+def test_fitted_global_model_map_against_the_truth_mbt_and_torque(fitted_map):
+    """Issue acceptance with the *fitted* global model (see ``fitted_map``): torque within 1 % in every feasible
+    cell, and where the table is MBT-limited its MBT within 2 deg of the truth's (parabola vertex of a 1-deg
+    brute-force sweep).
+    """
+    res, sweeps = fitted_map
     lim = res.settings.knock_limit
     checked = 0
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
-        fine = _fine_sweep(spec, law, cell, cell["spark_deg_btdc"] - 10, cell["spark_deg_btdc"] + 10)
+        fine = sweeps[int(cell["cell"])]
         safe = fine[fine["knock_index"] < lim]
         sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
         at_table = float(np.interp(cell["spark_deg_btdc"], sp, tq))
