@@ -53,6 +53,7 @@ TARGET_CHUNK_S = 5.0   # wall time aimed at per Dask task [s]: the top of the is
                        # costs ~0.15-0.3 s of Prefect/Dask overhead (benchmarks/bench_sweep.py: 3 s gave +13 %)
 EST_POINT_S = 0.09     # median cost of one point at 0.5 deg (benchmarks/bench_cycle.py) [s]
 IN_FLIGHT_PER_THREAD = 3  # chunks submitted ahead per worker thread
+LOW_LEVEL_LOG_LENGTH = 20  # Dask's debug logs of recent messages (see dask_runner)
 
 
 # ----------------------------------------------------------------------------- plan handling
@@ -179,6 +180,10 @@ def dask_runner(workers: int = DEFAULT_WORKERS, address: str | None = None):
     """A DaskTaskRunner: an existing scheduler at ``address``, or a local cluster of ``workers`` x 1 thread."""
     from prefect_dask import DaskTaskRunner
 
+    # Dask's BatchedSend keeps its last `low-level-log-length` (default 1000) messages for debugging; every
+    # task submission is one, holding the pickled chunk (~0.25 MB here), so the driver grew by ~240 MB over
+    # the first 1000 chunks (benchmarks/bench_sweep.py).  A short log keeps the driver flat.
+    dask.config.set({"distributed.admin.low-level-log-length": LOW_LEVEL_LOG_LENGTH})
     if address:
         return DaskTaskRunner(address=address)
     if workers < 1:
