@@ -254,6 +254,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
     schema = store.result_schema(pts)
     shash, solh = eng.spec_hash(), store.solver_hash(solver)
     todo, skipped = [], 0
+    counts = {"points": 0, "ok": 0, "not_converged": 0, "failed": 0}   # summed per part: no dataset read
     for stale in sweep_dir.glob(store.PART_GLOB):   # parts of another chunking (e.g. an older version)
         try:
             index = int(stale.stem.split("-")[1])
@@ -268,6 +269,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
             meta = store.read_part_meta(path)
             if meta is not None and meta.get("key") == key:
                 skipped += 1
+                _add_counts(counts, store.summarize(pd.read_parquet(path, columns=["status"])))
                 continue
             path.unlink()   # stale or torn: recompute
         todo.append((c, a, b, key))
@@ -319,9 +321,9 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         if t_first is None:
             t_first = time.perf_counter() - t_start
         bar.update(len(res))
+        _add_counts(counts, store.summarize(res))
         del res
 
-    counts = store.summarize(store.read_results(out_dir, columns=["status"]))   # one column: driver memory flat
     wall = time.perf_counter() - t_start
     complete = not failed and counts["points"] == len(pts)
     man = {**base, "status": "complete" if complete else "incomplete", "started": started,
@@ -338,6 +340,11 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         raise RuntimeError(f"{len(failed)} chunk(s) failed after retries ({sorted(failed)}); their points are "
                            f"listed as missing in {man_path}; run the same command again to compute them")
     return man
+
+
+def _add_counts(total: dict, part: dict) -> None:
+    for k, v in part.items():
+        total[k] = total.get(k, 0) + v
 
 
 def _runner_client():
