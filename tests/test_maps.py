@@ -486,6 +486,15 @@ def fitted_map():
     return res, sweeps
 
 
+def _check_torque_at_table(cell, fine: pd.DataFrame, lim: float):
+    """Assert the truth's torque at the table spark is within 1 % of its best knock-safe torque; return the sweep."""
+    safe = fine[fine["knock_index"] < lim]
+    sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
+    at_table = float(np.interp(cell["spark_deg_btdc"], sp, tq))
+    assert at_table >= 0.99 * safe["brake_torque_nm"].max(), (cell["throttle_pct"], cell["speed_rpm"])
+    return sp, tq
+
+
 def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
     """Issue acceptance, torque part: in every feasible cell the truth's torque at the table spark is within 1 % of
     the truth's best knock-safe torque (brute-force 1-deg sweep +-10 deg around the table value).
@@ -498,11 +507,7 @@ def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
     lim = res.settings.knock_limit
     assert len(sweeps) >= 3
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
-        fine = sweeps[int(cell["cell"])]
-        safe = fine[fine["knock_index"] < lim]
-        sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
-        at_table = float(np.interp(cell["spark_deg_btdc"], sp, tq))
-        assert at_table >= 0.99 * safe["brake_torque_nm"].max(), (cell["throttle_pct"], cell["speed_rpm"])
+        sp, tq = _check_torque_at_table(cell, sweeps[int(cell["cell"])], lim)
 
 
 @pytest.mark.xfail(strict=True, reason="measured 2026-11-23: MBT is not within 2 deg of the truth's in any of the "
@@ -518,11 +523,7 @@ def test_fitted_global_model_map_against_the_truth_mbt_and_torque(fitted_map):
     lim = res.settings.knock_limit
     checked = 0
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
-        fine = sweeps[int(cell["cell"])]
-        safe = fine[fine["knock_index"] < lim]
-        sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
-        at_table = float(np.interp(cell["spark_deg_btdc"], sp, tq))
-        assert at_table >= 0.99 * safe["brake_torque_nm"].max(), (cell["throttle_pct"], cell["speed_rpm"])
+        sp, tq = _check_torque_at_table(cell, sweeps[int(cell["cell"])], lim)
         if cell["limited_by"] == "mbt":
             k = int(np.argmax(tq))
             near = np.abs(sp - sp[k]) <= 6
