@@ -19,9 +19,9 @@ on all states.  The orifice elements (throttle, restrictor, valves, tailpipe)
 are evaluated, in each Heun stage, linearly implicitly: every flow is
 linearised in the two pressures and solved together with the pressure changes
 of the volumes it joins over one step, including the known pressure rates
-from the piston, wall heat and runner flows (``_solve_chain``; the coupled
-groups are [throttle body, plenum], [intake port k, cylinder k, exhaust port k]
-and [collector]).  This is smooth (no explicit/implicit switch) and stays
+from the piston, wall heat and runner flows (``network._solve_one`` and
+``_solve_two``, closed forms; the coupled groups are [throttle body, plenum],
+[intake port k, cylinder k, exhaust port k] and [collector]).  This is smooth (no explicit/implicit switch) and stays
 correct where the square-root law is stiff (nearly equal pressures, the small
 cylinder volume during valve overlap).  Quasi-steady runners (inertia off) use
 a single-element flow, implicit where stiff (``network._flow_between``).  Each
@@ -40,7 +40,7 @@ from .accel import mpe, pack_state, state_weights, unpack_state
 from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
                        woschni_velocity)
 from .layout import *  # noqa: F401,F403  (index constants)
-from .network import _add_rate, _lin_between, _orifice_between, _solve_chain
+from .network import _add_rate, _lin_between, _orifice_between, _solve_one, _solve_two
 from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
 from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer
 
@@ -66,7 +66,7 @@ def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-            vcur, dvol, dmr, acc, rate, E, M, rhs, nodes, elist):
+            vcur, dvol, dmr, acc, rate, E):
     """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.
 
     Returns a failure code (0 = ok).  ``acc`` receives the rates of the cycle integrals.
@@ -147,6 +147,7 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
     props[tpipe, PR_P] = par[P_PAMB]
     props[tpipe, PR_RHO] = par[P_PAMB] / (props[icol, PR_R] * props[icol, PR_T])
     props[tpipe, PR_S] = 0.0
+    props[tpipe, PR_GV] = 0.0
 
     # ---- cylinders: combustion, wall heat, piston work, knock
     for k in range(ncyl):
@@ -204,35 +205,25 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
     _lin_between(itb, ipl, par[P_RES_CDA], par[P_RES_REC], props, eps, E, 1)
     _lin_between(icol, tpipe, par[P_TP_CDA], 0.0, props, eps, E, 2)
     # network solves: [throttle body, plenum], [collector], [intake port, cylinder, exhaust port] per cylinder
-    nodes[0] = itb
-    nodes[1] = ipl
-    elist[0] = 0
-    elist[1] = 1
-    _solve_chain(nodes, 2, elist, 2, E, props, vcur, rate, dt, M, rhs)
-    nodes[0] = icol
-    elist[0] = 2
-    _solve_chain(nodes, 1, elist, 1, E, props, vcur, rate, dt, M, rhs)
+    _solve_two(0, 1, E, props, rate, nvol, dt)
+    _solve_one(2, E, props, rate, nvol, dt)
     for k in range(ncyl):
         le = (s_step + stage - offs[k]) % nstep
         e = 3 + 2 * k
         E[e, 6] = 0.0
         E[e + 1, 6] = 0.0
-        nel = 0
         aiv = tab[T_AIV, le]
+        aev = tab[T_AEV, le]
         if aiv > 0.0:
             _lin_between(ncyl + k, k, aiv, 0.0, props, eps, E, e)
-            elist[nel] = e
-            nel += 1
-        aev = tab[T_AEV, le]
         if aev > 0.0:
             _lin_between(k, 2 * ncyl + k, aev, 0.0, props, eps, E, e + 1)
-            elist[nel] = e + 1
-            nel += 1
-        if nel > 0:
-            nodes[0] = ncyl + k
-            nodes[1] = k
-            nodes[2] = 2 * ncyl + k
-            _solve_chain(nodes, 3, elist, nel, E, props, vcur, rate, dt, M, rhs)
+        if aiv > 0.0 and aev > 0.0:
+            _solve_two(e, e + 1, E, props, rate, nvol, dt)
+        elif aiv > 0.0:
+            _solve_one(e, E, props, rate, nvol, dt)
+        elif aev > 0.0:
+            _solve_one(e + 1, E, props, rate, nvol, dt)
 
     # ---- apply the flows (each leaves one volume and enters another, same mass and enthalpy)
     mth = E[0, 6]
@@ -330,10 +321,6 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     dm1 = np.zeros_like(mr)
     rate = np.zeros(nvol)
     E = np.zeros((3 + 2 * ncyl, 7))
-    Mx = np.zeros((3, 3))
-    rhs = np.zeros(3)
-    nodes = np.zeros(3, dtype=np.int64)
-    elist = np.zeros(3, dtype=np.int64)
     a0 = np.zeros(nacc)
     a1 = np.zeros(nacc)
     cyc_acc = np.zeros(nacc)
@@ -402,7 +389,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                     ref[k, 4] = vol[k, V_MM]
             # stage 1
             fail = _derivs(vol, mr, s, 0, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-                           vcur, d0, dm0, a0, rate, E, Mx, rhs, nodes, elist)
+                           vcur, d0, dm0, a0, rate, E)
             if fail != 0:
                 break
             # record the state at the start of the step
@@ -435,7 +422,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
             fail = _derivs(vol1, mr1, s, 1, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-                           vcur, d1, dm1, a1, rate, E, Mx, rhs, nodes, elist)
+                           vcur, d1, dm1, a1, rate, E)
             if fail != 0:
                 break
             h2 = 0.5 * dt

@@ -4,7 +4,7 @@ from numba import njit
 
 from .flow import orifice_flow_lin, restrictor_flow, restrictor_throat_pressure
 from .layout import *  # noqa: F401,F403  (index constants)
-from .volumes import PR_G, PR_P, PR_R, PR_S, PR_T
+from .volumes import PR_G, PR_GV, PR_P, PR_R, PR_RT, PR_S, PR_T
 
 STIFF_FRACTION = 2.0  # single-element flows: solved implicitly when the explicit flow would move > 2x the equalising mass per step
 
@@ -81,7 +81,7 @@ def _orifice_between(i, j, cda, props, dt):
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _coef(n, u, props, vcur):
     """Pressure change of volume n per kg of gas from volume u entering it [Pa/kg] (gamma_n R_u T_u / V_n)."""
-    return props[n, PR_G] * props[u, PR_R] * props[u, PR_T] / vcur[n]
+    return props[n, PR_GV] * props[u, PR_RT]
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -126,82 +126,79 @@ def _lin_between(i, j, cda, rec_fwd, props, eps, E, e):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _solve_chain(nodes, nn, elist, nel, E, props, vcur, rate, dt, M, rhs):
-    """Linearly implicit flows of the elements ``elist`` joining the volumes ``nodes`` (n <= 3).
+def _lin_terms(e, E, props, rate, nvol, dt):
+    """Terms of element e's linearised flow with the pressure changes of its end volumes substituted.
 
-    Each element's flow is linearised about the current pressures,
-    m_e = m0_e + a_e dP_i - b_e dP_j, and the pressure changes of the volumes
-    over one step, dP_n = dt (rate_n + sum_e c_ne m_e), are solved together
-    with those flows; rate_n holds every other contribution (piston, wall heat,
-    runner flows).  Where the flows are stiff the flow follows the demand of the
-    rest of the network (piston, runners) with no artificial pressure drop and no
-    oscillation; where they are slow it is the explicit flow plus an O(dt)
-    look-ahead.  Result in E[e, 6].
+    With m = m0 + a dP_i - b dP_j and dP_n = dt (rate_n + sum of c_n,u m over the
+    flows into n), where c_n,u = gamma_n R_u T_u / V_n and an end at or beyond
+    ``nvol`` (ambient, tailpipe) has a fixed pressure, this returns
+    (m0 + dt (a rate_i - b rate_j), dt a c_i, dt b c_j, dt a, dt b) with
+    c_i, c_j the coefficients of the ends for this element's upstream gas
+    (0 for fixed ends).
     """
-    for a in range(nn):
-        for b in range(nn):
-            M[a, b] = 0.0
-        M[a, a] = 1.0
-        rhs[a] = dt * rate[nodes[a]]
-    for q in range(nel):
-        e = elist[q]
-        i = int(E[e, 0])
-        j = int(E[e, 1])
-        u = int(E[e, 5])
-        ia = -1
-        ja = -1
-        for a in range(nn):
-            if nodes[a] == i:
-                ia = a
-            if nodes[a] == j:
-                ja = a
-        m0 = E[e, 2]
-        al = E[e, 3]
-        be = E[e, 4]
-        if ia >= 0:
-            c = -dt * _coef(i, u, props, vcur)
-            rhs[ia] += c * m0
-            M[ia, ia] -= c * al
-            if ja >= 0:
-                M[ia, ja] += c * be
-        if ja >= 0:
-            c = dt * _coef(j, u, props, vcur)
-            rhs[ja] += c * m0
-            M[ja, ja] += c * be
-            if ia >= 0:
-                M[ja, ia] -= c * al
-    # Gaussian elimination with partial pivoting (n <= 3)
-    for a in range(nn):
-        piv = a
-        for b in range(a + 1, nn):
-            if abs(M[b, a]) > abs(M[piv, a]):
-                piv = b
-        if piv != a:
-            for c2 in range(nn):
-                tmp = M[a, c2]
-                M[a, c2] = M[piv, c2]
-                M[piv, c2] = tmp
-            tmp = rhs[a]
-            rhs[a] = rhs[piv]
-            rhs[piv] = tmp
-        for b in range(a + 1, nn):
-            f = M[b, a] / M[a, a]
-            for c2 in range(a, nn):
-                M[b, c2] -= f * M[a, c2]
-            rhs[b] -= f * rhs[a]
-    for a in range(nn - 1, -1, -1):
-        acc = rhs[a]
-        for b in range(a + 1, nn):
-            acc -= M[a, b] * rhs[b]
-        rhs[a] = acc / M[a, a]
-    for q in range(nel):
-        e = elist[q]
-        i = int(E[e, 0])
-        j = int(E[e, 1])
-        m = E[e, 2]
-        for a in range(nn):
-            if nodes[a] == i:
-                m += E[e, 3] * rhs[a]
-            if nodes[a] == j:
-                m -= E[e, 4] * rhs[a]
-        E[e, 6] = m
+    i = int(E[e, 0])
+    j = int(E[e, 1])
+    u = int(E[e, 5])
+    ta = dt * E[e, 3]
+    tb = dt * E[e, 4]
+    rhs = E[e, 2]
+    ci = 0.0
+    cj = 0.0
+    rtu = props[u, PR_RT]
+    if i < nvol:
+        rhs += ta * rate[i]
+        ci = props[i, PR_GV] * rtu
+    if j < nvol:
+        rhs -= tb * rate[j]
+        cj = props[j, PR_GV] * rtu
+    return rhs, ta * ci, tb * cj, ta, tb
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _solve_one(e, E, props, rate, nvol, dt):
+    """Linearly implicit flow of a single element e; result in E[e, 6].
+
+    The flow is linearised about the current pressures, m = m0 + a dP_i - b dP_j,
+    and solved together with the pressure changes of its end volumes over one
+    step, dP_n = dt (rate_n +- c_n m); rate_n holds every other contribution
+    (piston, wall heat, runner flows).  Where the flow is stiff it follows the
+    demand of the rest of the network with no artificial pressure drop and no
+    oscillation; where it is slow it is the explicit flow plus an O(dt)
+    look-ahead.  Closed form: m (1 + dt (a c_i + b c_j)) = m0 + dt (a rate_i - b rate_j).
+    """
+    rhs, ai, bj, _, _ = _lin_terms(e, E, props, rate, nvol, dt)
+    E[e, 6] = rhs / (1.0 + ai + bj)
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _solve_two(e1, e2, E, props, rate, nvol, dt):
+    """Linearly implicit flows of two elements in series, e1: i -> s and e2: s -> j (results in E[e, 6]).
+
+    The shared volume s sees both flows: dP_s = dt (rate_s + c_s1 m1 - c_s2 m2),
+    with c_s1, c_s2 its coefficients for the upstream gas of e1 and e2.  The two
+    linearised flow laws are then a 2 x 2 system in (m1, m2),
+
+        [1 + dt (a1 c_i + b1 c_s1)     -dt b1 c_s2           ] [m1]   [m01 + dt (a1 rate_i - b1 rate_s)]
+        [-dt a2 c_s1                   1 + dt (a2 c_s2 + b2 c_j)] [m2] = [m02 + dt (a2 rate_s - b2 rate_j)]
+
+    whose determinant is >= 1 (the cross terms cancel), solved by Cramer's
+    rule.  The same linear system as a joint solve for the three pressure changes,
+    eliminated in the flows instead.
+    """
+    s = int(E[e1, 1])
+    b1, a1ci, b1cs1, _, tb1 = _lin_terms(e1, E, props, rate, nvol, dt)
+    b2, a2cs2, b2cj, ta2, _ = _lin_terms(e2, E, props, rate, nvol, dt)
+    gs = props[s, PR_GV]
+    a = 1.0 + a1ci + b1cs1
+    d = 1.0 + a2cs2 + b2cj
+    bb = tb1 * gs * props[int(E[e2, 5]), PR_RT]     # dt b1 c_s2
+    cc = ta2 * gs * props[int(E[e1, 5]), PR_RT]     # dt a2 c_s1
+    # a d - bb cc expanded: the dt^2 b1 c_s1 a2 c_s2 terms cancel exactly, and
+    # what remains is a sum of non-negative terms (no cancellation when stiff)
+    x1 = a1ci
+    y1 = b1cs1
+    x2 = a2cs2
+    y2 = b2cj
+    inv = 1.0 / (1.0 + x1 + y1 + x2 + y2 + x1 * x2 + x1 * y2 + y1 * y2)
+    E[e1, 6] = (d * b1 + bb * b2) * inv
+    E[e2, 6] = (a * b2 + cc * b1) * inv

@@ -6,8 +6,12 @@ from ..thermo import cp_mass, h_mass, mixture_tcphr
 from .layout import *  # noqa: F401,F403  (index constants)
 
 # property columns of the scratch array ``props``
-PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP, PR_RHO, PR_S = range(10)
-NPR = 10
+# PR_S = gamma R T / V is the pressure change per kg of the volume's own gas
+# [Pa/kg]; PR_GV = gamma / V and PR_RT = R T split it, so that the pressure
+# change of volume n per kg of gas from volume u is props[n, PR_GV] * props[u, PR_RT]
+# (no division in the flow solves).
+PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP, PR_RHO, PR_S, PR_GV, PR_RT = range(12)
+NPR = 12
 
 # accumulator layout: global entries, then 6 per cylinder
 A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN = range(8)
@@ -50,6 +54,8 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         props[k, PR_YP] = yp
         props[k, PR_RHO] = m * inv_v
         props[k, PR_S] = g * rt * inv_v
+        props[k, PR_GV] = g * inv_v
+        props[k, PR_RT] = rt
     return 0
 
 
@@ -108,3 +114,5 @@ def _set_ambient(props, amb, par, coeffs, rsp):
     props[amb, PR_YP] = 0.0
     props[amb, PR_RHO] = par[P_PAMB] / (rsp[SP_A] * t)
     props[amb, PR_S] = 0.0
+    props[amb, PR_GV] = 0.0
+    props[amb, PR_RT] = rsp[SP_A] * t
