@@ -28,7 +28,7 @@ __all__ = [
     "T_MID", "T_REF", "R_UNIVERSAL", "K_WATER_GAS", "FUEL_CARBON_NUMBER",
     "FuelSpec", "GasSet", "stoich_afr", "products_mole_fractions", "gas_set",
     "constant_cp_gas_set", "cp_mass", "h_mass", "u_mass", "cv_mass", "s0_mass",
-    "temperature_from_u", "mix_coeffs", "PRODUCT_SPECIES",
+    "temperature_from_u", "mix_coeffs", "enthalpy_coeffs", "mixture_state", "PRODUCT_SPECIES",
 ]
 
 T_MID = 1000.0          # [K] common range split of the GRI-Mech 3.0 polynomials used below
@@ -420,20 +420,45 @@ def mix_coeffs(coeffs, y_a, y_m, y_p, out):
             out[i, j] = y_a * coeffs[0, i, j] + y_m * coeffs[1, i, j] + y_p * coeffs[2, i, j]
 
 
-@_jit
-def _mix_range(coeffs, k, y_a, y_m, y_p):
-    """First six mass-weighted coefficients of temperature range k (cp polynomial and enthalpy constant)."""
-    w = (y_a, y_m, y_p)
-    return (w[0] * coeffs[0, k, 0] + w[1] * coeffs[1, k, 0] + w[2] * coeffs[2, k, 0],
-            w[0] * coeffs[0, k, 1] + w[1] * coeffs[1, k, 1] + w[2] * coeffs[2, k, 1],
-            w[0] * coeffs[0, k, 2] + w[1] * coeffs[1, k, 2] + w[2] * coeffs[2, k, 2],
-            w[0] * coeffs[0, k, 3] + w[1] * coeffs[1, k, 3] + w[2] * coeffs[2, k, 3],
-            w[0] * coeffs[0, k, 4] + w[1] * coeffs[1, k, 4] + w[2] * coeffs[2, k, 4],
-            w[0] * coeffs[0, k, 5] + w[1] * coeffs[1, k, 5] + w[2] * coeffs[2, k, 5])
+def enthalpy_coeffs(coeffs) -> np.ndarray:
+    """Enthalpy-polynomial form of (..., 2, 7) NASA mass coefficients: (..., 2, 6) [c0, c1/2, c2/3, c3/4, c4/5, c5].
+
+    h(T) = T (e0 + T (e1 + T (e2 + T (e3 + T e4)))) + e5 and
+    cp(T) = e0 + T (2 e1 + T (3 e2 + T (4 e3 + T 5 e4))): the form the cycle
+    kernel mixes, so that its Newton iteration on u(T) does no division by the
+    polynomial's integer constants.
+    """
+    c = np.asarray(coeffs, dtype=np.float64)
+    e = np.empty(c.shape[:-1] + (6,))
+    for j in range(5):
+        e[..., j] = c[..., j] / (j + 1.0)
+    e[..., 5] = c[..., 5]
+    return e
 
 
 @_jit
-def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
+def enthalpy_coeffs_into(coeffs, out):
+    """Compiled form of :func:`enthalpy_coeffs` for a (3, 2, 7) block into ``out`` (3, 2, 6)."""
+    for s in range(3):
+        for k in range(2):
+            for j in range(5):
+                out[s, k, j] = coeffs[s, k, j] / (j + 1.0)
+            out[s, k, 5] = coeffs[s, k, 5]
+
+
+@_jit
+def _mix_range(hcoeffs, k, y_a, y_m, y_p):
+    """Mass-weighted enthalpy-polynomial coefficients (e0..e5, see ``enthalpy_coeffs``) of temperature range k."""
+    return (y_a * hcoeffs[0, k, 0] + y_m * hcoeffs[1, k, 0] + y_p * hcoeffs[2, k, 0],
+            y_a * hcoeffs[0, k, 1] + y_m * hcoeffs[1, k, 1] + y_p * hcoeffs[2, k, 1],
+            y_a * hcoeffs[0, k, 2] + y_m * hcoeffs[1, k, 2] + y_p * hcoeffs[2, k, 2],
+            y_a * hcoeffs[0, k, 3] + y_m * hcoeffs[1, k, 3] + y_p * hcoeffs[2, k, 3],
+            y_a * hcoeffs[0, k, 4] + y_m * hcoeffs[1, k, 4] + y_p * hcoeffs[2, k, 4],
+            y_a * hcoeffs[0, k, 5] + y_m * hcoeffs[1, k, 5] + y_p * hcoeffs[2, k, 5])
+
+
+@_jit
+def mixture_state(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
     """Temperature, cp, h and R of a three-species mixture from its specific internal energy, in one pass.
 
     Mixes only the coefficient range the Newton iteration is in (re-mixing if
@@ -443,8 +468,8 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
 
     Parameters
     ----------
-    coeffs : (3, 2, 7) float64
-        Mass-based coefficients of A, M, P.
+    hcoeffs : (3, 2, 6) float64
+        Enthalpy-polynomial coefficients of A, M, P (``enthalpy_coeffs`` of the mass-based NASA block).
     rsp : (3,) float64
         Specific gas constants [J/(kg K)].
     y_a, y_m, y_p : float
@@ -456,7 +481,7 @@ def mixture_state(coeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
     out : (4,) float64
         Receives T [K], cp [J/(kg K)], h [J/kg], R [J/(kg K)].
     """
-    t, cp, h, r = mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess)
+    t, cp, h, r = mixture_tcphr(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess)
     out[0] = t
     out[1] = cp
     out[2] = h
@@ -472,7 +497,7 @@ _NEWTON_STEP2 = 1e-4   # [K^2]
 
 
 @_jit
-def mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess):
+def mixture_tcphr(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess):
     """(T, cp, h, R) of a three-species mixture from its specific internal energy; see ``mixture_state``.
 
     Scalar-returning form used by the cycle kernel.  Newton from ``t_guess``,
@@ -481,10 +506,11 @@ def mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess):
     r = y_a * rsp[0] + y_m * rsp[1] + y_p * rsp[2]
     T = t_guess if (t_guess >= _T_MIN and t_guess <= _T_MAX) else T_MID
     k = 0 if T < T_MID else 1
-    c0, c1, c2, c3, c4, c5 = _mix_range(coeffs, k, y_a, y_m, y_p)
+    e0, e1, e2, e3, e4, e5 = _mix_range(hcoeffs, k, y_a, y_m, y_p)
     for _ in range(30):
-        cv = c0 - r + T * (c1 + T * (c2 + T * (c3 + T * c4)))
-        uu = T * (c0 - r + T * (c1 / 2.0 + T * (c2 / 3.0 + T * (c3 / 4.0 + T * c4 / 5.0)))) + c5
+        # u(T) = T (e0 - r + T (e1 + T (e2 + T (e3 + T e4)))) + e5, cv = du/dT
+        cv = e0 - r + T * (2.0 * e1 + T * (3.0 * e2 + T * (4.0 * e3 + T * (5.0 * e4))))
+        uu = T * (e0 - r + T * (e1 + T * (e2 + T * (e3 + T * e4)))) + e5
         t_new = T - (uu - u) / cv
         if t_new < _T_MIN:
             t_new = _T_MIN
@@ -493,7 +519,7 @@ def mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess):
         k_new = 0 if t_new < T_MID else 1
         if k_new != k:
             k = k_new
-            c0, c1, c2, c3, c4, c5 = _mix_range(coeffs, k, y_a, y_m, y_p)
+            e0, e1, e2, e3, e4, e5 = _mix_range(hcoeffs, k, y_a, y_m, y_p)
             T = t_new
             continue
         d = t_new - T
@@ -501,5 +527,5 @@ def mixture_tcphr(coeffs, rsp, y_a, y_m, y_p, u, t_guess):
         T = t_new
         if done:
             break
-    cp = c0 + T * (c1 + T * (c2 + T * (c3 + T * c4)))
+    cp = e0 + T * (2.0 * e1 + T * (3.0 * e2 + T * (4.0 * e3 + T * (5.0 * e4))))
     return T, cp, u + r * T, r

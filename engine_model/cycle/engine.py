@@ -36,6 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
+from ..thermo import enthalpy_coeffs_into
 from .accel import mpe, pack_state, state_weights, unpack_state
 from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
                        woschni_velocity)
@@ -65,7 +66,7 @@ def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
             vcur, dvol, dmr, acc, rate, E):
     """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.
 
@@ -84,7 +85,7 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, coeffs, rsp, fuel_c, ref, nv
     for k in range(ncyl):
         li = (s_step + stage - offs[k]) % nstep
         vcur[k] = tab[T_V, li]
-    code = _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props)
+    code = _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
     if code != 0:
         return code
     dvol[:, :] = 0.0
@@ -310,6 +311,8 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     tol = par[P_TOL]
 
     cbuf = np.empty(4)
+    hcoeffs = np.empty((3, 2, 6))      # enthalpy-polynomial form of ``coeffs`` for the property evaluation
+    enthalpy_coeffs_into(coeffs, hcoeffs)
     props = np.zeros((nvol + 2, NPR))   # + ambient, + tailpipe pseudo-volume
     _set_ambient(props, nvol, par, coeffs, rsp)
     vcur = vfix.copy()
@@ -388,7 +391,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 if li == idx_soc:
                     ref[k, 4] = vol[k, V_MM]
             # stage 1
-            fail = _derivs(vol, mr, s, 0, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+            fail = _derivs(vol, mr, s, 0, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
                            vcur, d0, dm0, a0, rate, E)
             if fail != 0:
                 break
@@ -421,7 +424,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 vol1[i, V_T] = vol[i, V_T]
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
-            fail = _derivs(vol1, mr1, s, 1, par, tab, offs, coeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+            fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
                            vcur, d1, dm1, a1, rate, E)
             if fail != 0:
                 break

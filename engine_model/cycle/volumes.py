@@ -22,7 +22,7 @@ AC_N = 6
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
+def _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
     """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
     for k in range(nvol):
         ma = vol[k, V_MA]
@@ -37,7 +37,7 @@ def _eval_props(vol, vcur, nvol, coeffs, rsp, cbuf, props):
         ya = ma * inv_m
         ym = mm * inv_m
         yp = mp * inv_m
-        t, cp, h, r = mixture_tcphr(coeffs, rsp, ya, ym, yp, vol[k, V_U] * inv_m, vol[k, V_T])
+        t, cp, h, r = mixture_tcphr(hcoeffs, rsp, ya, ym, yp, vol[k, V_U] * inv_m, vol[k, V_T])
         if not (t > 150.0 and t < 4400.0):
             return 100 + k
         vol[k, V_T] = t
