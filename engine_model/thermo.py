@@ -496,7 +496,12 @@ def mixture_state(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess, out):
 _NEWTON_STEP2 = 1e-4   # [K^2]
 
 
-@_jit
+# inlined into its caller at the numba level (the cycle kernel calls it 30 times
+# per step; a call passes each array argument as a 7-word struct on the stack),
+# and with fused multiply-adds like the cycle kernels (see cycle/layout.py).
+# NB numba's cache=True does not track this dependency: after editing this
+# function, delete the cycle kernels' cache (engine_model/cycle/__pycache__/*.nb?).
+@numba.njit(cache=True, fastmath={"contract"}, _nrt=False, inline="always")
 def mixture_tcphr(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess):
     """(T, cp, h, R) of a three-species mixture from its specific internal energy; see ``mixture_state``.
 

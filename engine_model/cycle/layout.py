@@ -3,10 +3,13 @@
 Module-level integers are compile-time constants for numba.
 """
 
-# --- FASTMATH choice for all kernels: off.  The model relies on exact IEEE
-# behaviour in a few places (min/max clamps, NaN detection on failure) and the
-# measured gain of fastmath on this kind of kernel is small (pow/exp/log dominate).
-FASTMATH = False
+# --- FASTMATH choice for all kernels: only "contract", i.e. LLVM may fuse a*b + c
+# into one fused multiply-add (one rounding instead of two; the Horner chains of
+# the property polynomials and the flow solves become shorter).  Measured 6-8 %
+# less time per cycle (A/B, same process, best of 15).  The other fast-math
+# flags stay off: the model relies on exact IEEE behaviour in a few places
+# (min/max clamps, NaN detection on failure).
+FASTMATH = {"contract"}
 
 # --- Reference counting: every kernel except the driver ``run_engine`` (which
 # allocates its work arrays) is compiled with ``_nrt=False``.  Numba otherwise
