@@ -311,6 +311,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     tol = par[P_TOL]
 
     cbuf = np.empty(4)
+    t_start = np.zeros(nvol)            # start-of-step temperature of the previous step [K] (0 = none yet)
     hcoeffs = np.empty((3, 2, 6))      # enthalpy-polynomial form of ``coeffs`` for the property evaluation
     enthalpy_coeffs_into(coeffs, hcoeffs)
     props = np.zeros((nvol + 2, NPR))   # + ambient, + tailpipe pseudo-volume
@@ -418,10 +419,15 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             trace[2 * ncyl + 4, s] = props[2 * ncyl, PR_P]
             ppl_sum += props[ipl, PR_P]
             # stage 2 (predictor state at the end of the step)
+            # Newton start for the end-of-step temperatures: linear extrapolation in
+            # time from the last two start-of-step temperatures (leaves ~T'' dt^2
+            # to iterate instead of ~T' dt; the answer does not depend on it)
             for i in range(nvol):
                 for c in range(NVCOL - 1):
                     vol1[i, c] = vol[i, c] + dt * d0[i, c]
-                vol1[i, V_T] = vol[i, V_T]
+                t0 = vol[i, V_T]
+                vol1[i, V_T] = 2.0 * t0 - t_start[i] if t_start[i] > 0.0 else t0
+                t_start[i] = t0
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
             fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
