@@ -116,6 +116,8 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
             nseg = int(par[P_ER_NSEG])
             m_first = ncyl * int(par[P_IR_NSEG])
         l_s = l_r / nseg
+        c_dp = a_r / l_s                       # [m]: d(mdot)/dt per unit pressure difference
+        c_loss = k_r / (2.0 * a_r * l_r)       # [1/m^3]: loss term is c_loss * m|m| / rho
         for k in range(ncyl):
             if side == 0:
                 up_end = ipl
@@ -130,8 +132,7 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
                 if inertia:
                     m = mr[idx]
                     rho = props[up, PR_RHO] if m >= 0.0 else props[dn, PR_RHO]
-                    dmr[idx] = a_r / l_s * (props[up, PR_P] - props[dn, PR_P]) \
-                        - k_r / (2.0 * rho * a_r * l_r) * m * abs(m)
+                    dmr[idx] = c_dp * (props[up, PR_P] - props[dn, PR_P]) - c_loss * m * abs(m) / rho
                 else:
                     m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
                     dmr[idx] = 0.0
