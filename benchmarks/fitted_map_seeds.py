@@ -37,8 +37,8 @@ SOLVER = SolverSettings(step_deg=1.0)
 GRID = EcuGrid((30.0, 100.0), (7000.0, 12000.0))
 
 
-def data_points():
-    pts = doe.latin_hypercube(48, bounds={"spark_deg_btdc": (-20.0, 5.0), "speed_rpm": (5000.0, 13000.0),
+def data_points(spark_hi: float = 5.0):
+    pts = doe.latin_hypercube(48, bounds={"spark_deg_btdc": (-20.0, spark_hi), "speed_rpm": (5000.0, 13000.0),
                                           "throttle_pct": (20.0, 100.0)}, seed=7)
     pts = learning._absolute_spark(pts)
     pts["point_id"] = [f"lhs{i}" for i in range(len(pts))]
@@ -98,6 +98,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", default="1-10")
     ap.add_argument("--variants", default="indep:bdur_m,indep:phasing,ridge:bdur_m,ridge:phasing")
+    ap.add_argument("--spark-hi", type=float, default=5.0, help="upper spark offset of the LHS [deg]")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/fitted_map_seeds"))
     ap.add_argument("--out", type=Path, default=Path("docs/data/fitted_map_seeds.csv"))
     a = ap.parse_args()
@@ -107,34 +108,45 @@ def main():
     table = load_table(spec, a.cache)
     lam = {(t, n): float(doe.lambda_target(t)) for t in GRID.throttle_pct for n in GRID.speed_rpm}
     sweeps = truth_sweeps(spec, law, lam, a.cache)
-    pts = data_points()
+    pts = data_points(a.spark_hi)
     rows = []
     for seed in range(lo, hi + 1):
         for v in a.variants.split(","):
-            noise, par = v.split(":")
-            ident = (learning.noisy_truth(law, sigma_bdur_deg=1.7, sigma_m=0.6, seed=seed) if noise == "indep"
-                     else learning.phasing_noisy_truth(law, seed=seed))
+            noise, par, *opt = v.split(":")
+            ex = opt[0] if opt else "clamp"
+            tr = opt[1] if len(opt) > 1 else "log"                      # output transform
+            fac = ("throttle_pct", "speed_rpm", "spark_deg_btdc") + (() if len(opt) > 2 and opt[2] == "3f"
+                                                                     else ("lambda",))
+            ident = {"indep": lambda: learning.noisy_truth(law, sigma_bdur_deg=1.7, sigma_m=0.6, seed=seed),
+                     "none": lambda: learning.noisy_truth(law, sigma_bdur_deg=0.0, sigma_m=0.0, seed=seed),
+                     "ridge": lambda: learning.phasing_noisy_truth(law, seed=seed),
+                     # per spark along the sweeps (docs/data/identification_error_along_sweep.csv, case A)
+                     "ridgept": lambda: learning.phasing_noisy_truth(law, 0.85, 0.95, 0.67, seed=seed)}[noise]()
             t0 = time.perf_counter()
-            model = MapModel(output_transform="log", load_table=table, parametrisation=par).fit(ident(pts), spec)
+            model = MapModel(output_transform=tr, load_table=table, parametrisation=par, factors=fac,
+                             extrapolation=ex).fit(ident(pts), spec)
             res = build_maps(spec, model, grid=GRID, evaluate=lambda p: simulate(spec, p, SOLVER))
             for r in judge(res, sweeps):
-                rows.append({"seed": seed, "noise": noise, "parametrisation": par, **r,
+                rows.append({"seed": seed, "noise": noise, "parametrisation": par, "extrapolation": ex,
+                             "transform": tr, "n_factors": len(fac), **r,
                              "s": time.perf_counter() - t0})
             g = pd.DataFrame([r for r in rows if r["seed"] == seed and r["noise"] == noise
-                              and r["parametrisation"] == par])
+                              and r["parametrisation"] == par and r["extrapolation"] == ex
+                              and r["transform"] == tr and r["n_factors"] == len(fac)])
             ok_mbt = bool((g["mbt_err"].abs().fillna(0) <= 2.0).all())
             ok_tq = bool((g["torque_ratio"] >= 0.99).all())
-            print(f"seed {seed} {v:14s} MBT err {np.round(g['mbt_err'].to_numpy(), 1)} torque "
+            print(f"seed {seed} {v:28s} MBT err {np.round(g['mbt_err'].to_numpy(), 1)} torque "
                   f"{np.round(g['torque_ratio'].to_numpy(), 3)} -> MBT {'pass' if ok_mbt else 'FAIL'}, torque "
                   f"{'pass' if ok_tq else 'FAIL'} ({time.perf_counter() - t0:.0f} s)", flush=True)
             pd.DataFrame(rows).round(4).to_csv(a.out, index=False)
     df = pd.DataFrame(rows)
     print("\nsummary (seeds passing / seeds):")
-    for (noise, par), g in df.groupby(["noise", "parametrisation"]):
+    for (noise, par, ex, tr, nf), g in df.groupby(["noise", "parametrisation", "extrapolation", "transform",
+                                                   "n_factors"]):
         per = g.groupby("seed").apply(lambda h: pd.Series({
             "mbt": (h["mbt_err"].abs().fillna(0) <= 2.0).all(), "torque": (h["torque_ratio"] >= 0.99).all()}))
         e = g["mbt_err"].dropna()
-        print(f"  {noise:5s} {par:7s}: MBT {int(per['mbt'].sum())}/{len(per)}, torque {int(per['torque'].sum())}/"
+        print(f"  {noise:7s} {par:7s} {ex:6s} {tr:4s} {nf}f: MBT {int(per['mbt'].sum())}/{len(per)}, torque {int(per['torque'].sum())}/"
               f"{len(per)}, both {int((per['mbt'] & per['torque']).sum())}/{len(per)}; MBT error RMS "
               f"{np.sqrt(np.mean(e ** 2)):.2f} deg, max |err| {e.abs().max():.1f} deg over {len(e)} cells")
 
