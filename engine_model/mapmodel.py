@@ -398,12 +398,16 @@ class MapModel:
 
     def _from_phasing(self, fitted: dict) -> dict:
         """(CA50 offset, m) predictions -> outputs in ``self.outputs`` order, BDUR10-90 with a delta-method std
-        (offset and m errors taken as independent), then the offset and its std."""
+        (offset and m errors taken as independent), then the offset and its std.  BDUR10-90 is NaN where the
+        predicted offset is <= 0 or m <= -1 (possible only without the log transform, far outside the data)."""
         off, m = fitted[CA50_OFFSET], fitted["wiebe_m"]
-        b = bdur_10_90_from_ca50_offset(off, m)
-        h = 1e-4
-        db_dm = (bdur_10_90_from_ca50_offset(off, m + h) - bdur_10_90_from_ca50_offset(off, m - h)) / (2 * h)
-        b_std = np.hypot(b / off * fitted[f"{CA50_OFFSET}_std"], db_dm * fitted["wiebe_m_std"])
+        # an untransformed surface extended or continued beyond the data can leave the Wiebe domain: no burn there
+        ok = np.isfinite(off) & np.isfinite(m) & (off > 0) & (m > -1 + 1e-3)
+        b, b_std = np.full(len(off), np.nan), np.full(len(off), np.nan)
+        o, mm, h = off[ok], m[ok], 1e-4
+        b[ok] = bdur_10_90_from_ca50_offset(o, mm)
+        db_dm = (bdur_10_90_from_ca50_offset(o, mm + h) - bdur_10_90_from_ca50_offset(o, mm - h)) / (2 * h)
+        b_std[ok] = np.hypot(b[ok] / o * fitted[f"{CA50_OFFSET}_std"][ok], db_dm * fitted["wiebe_m_std"][ok])
         full = {"bdur_10_90_deg": b, "bdur_10_90_deg_std": b_std, "wiebe_m": m, "wiebe_m_std": fitted["wiebe_m_std"]}
         out = {}
         for o in self.outputs:

@@ -369,6 +369,10 @@ def test_phasing_model_round_trip_old_files_and_bad_input(tmp_path):
         MapModel(parametrisation="ca90").fit(train)
     with pytest.raises(ValueError, match=r"parametrisation='phasing' needs outputs"):
         MapModel(parametrisation="phasing", outputs=("wiebe_m",)).fit(train)
+    # outside the Wiebe domain (offset <= 0 or m <= -1, reachable by an untransformed surface far out): no burn
+    got = m._from_phasing({"ca50_offset_deg": np.array([50.0, -1.0, 50.0]), "ca50_offset_deg_std": np.ones(3),
+                           "wiebe_m": np.array([5.0, 5.0, -1.5]), "wiebe_m_std": np.ones(3)})
+    assert np.isfinite(got["bdur_10_90_deg"][0]) and np.isnan(got["bdur_10_90_deg"][1:]).all()
     with pytest.raises(ValueError, match=r"row 2: bdur_10_90_deg = -1, wiebe_m = 5.4"):
         MapModel(parametrisation="phasing").fit(train.assign(
             bdur_10_90_deg=np.where(np.arange(len(train)) == 2, -1.0, train["bdur_10_90_deg"])))
