@@ -81,6 +81,10 @@ def judge(res, sweeps) -> list[dict]:
         f = f[(f["spark_deg_btdc"] >= s0 - 10) & (f["spark_deg_btdc"] <= s0 + 10)]
         sp, tq = f["spark_deg_btdc"].to_numpy(), f["brake_torque_nm"].to_numpy()
         safe = f["knock_index"].to_numpy() < lim
+        if not safe.any() or not sp[0] <= s0 <= sp[-1]:     # table spark outside the cached sweep: a failure
+            out.append({"cell": f"{cell['throttle_pct']:g}/{cell['speed_rpm']:g}", "limited_by": cell["limited_by"],
+                        "spark": s0, "torque_ratio": np.nan, "mbt_err": np.nan})
+            continue
         ratio = float(np.interp(s0, sp, tq)) / float(tq[safe].max())
         r = {"cell": f"{cell['throttle_pct']:g}/{cell['speed_rpm']:g}", "limited_by": cell["limited_by"],
              "spark": s0, "torque_ratio": ratio, "mbt_err": np.nan}
