@@ -511,9 +511,9 @@ def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
     """Issue acceptance, torque part: in every feasible cell the truth's torque at the table spark is within 1 % of
     the truth's best knock-safe torque (brute-force 1-deg sweep +-10 deg around the table value).
 
-    Measured (seed 1): torque ratio 0.996 / 0.991 / 0.998 / 0.995 at 30 % 7000 / 30 % 12000 / WOT 7000 / WOT 12000 rpm;
-    the untransformed throttle-coordinate model gave 0.986 at 30 % / 7000 rpm (fails).  30 % / 12000 rpm sits at
-    spark_max (70 deg) with the truth law itself too (0.991): the truth's MBT there is ~77 deg BTDC.
+    Measured (seed 1): torque ratio 0.997 / 0.991 / 1.000 / 1.000 at 30 % 7000 / 30 % 12000 / WOT 7000 / WOT 12000
+    rpm; 30 % / 12000 rpm sits at spark_max (70 deg) with the truth law itself too (0.991): the truth's MBT there is
+    ~77 deg BTDC.  Over 30 noise seeds this part passes for 28 (the independent-noise BDUR10-90/m fixture: 19).
     """
     res, sweeps = fitted_map
     lim = res.settings.knock_limit
@@ -522,14 +522,17 @@ def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
         _check_torque_at_table(cell, sweeps[int(cell["cell"])], lim)
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: MBT is not within 2 deg of the truth's in any of the "
-                   "3 MBT-limited cells (30 % / 7000 rpm: table 36.4 vs truth 32.0 deg; WOT 7000: 31.3 vs 28.1; WOT "
-                   "12000: 64.0 vs 70.3).  Variance-limited: over 20 noise seeds the CA50-spark proxy of MBT scatters "
-                   "by 2-5 deg (1 sd) per cell for every model variant tried; see docs/sections/mapmodel.md")
 def test_fitted_global_model_map_against_the_truth_mbt_and_torque(fitted_map):
     """Issue acceptance with the *fitted* global model (see ``fitted_map``): torque within 1 % in every feasible
     cell, and where the table is MBT-limited its MBT within 2 deg of the truth's (parabola vertex of a 1-deg
     brute-force sweep).
+
+    Measured (noise seed 1): 30 % / 7000 rpm 33.8 vs 31.9 deg, WOT 7000 rpm 28.8 vs 28.1 deg; WOT 12000 and
+    30 % / 12000 rpm sit at spark_max (70 deg; the truth's MBT is 70.3 and ~77 deg there).  The margin is thin
+    (1.9 of 2 deg at 30 % / 7000 rpm, where the fit is biased +1.3 deg on average): over 30 noise seeds
+    (benchmarks/fitted_map_seeds.py) the whole test passes for 23, for 14 of the 20 seeds not used to choose the
+    model settings.  With the previous independent-noise fixture and BDUR10-90/m model: 1 of 30.  A failure
+    after a numerical change therefore means this margin first, not necessarily a regression.
     """
     res, sweeps = fitted_map
     lim = res.settings.knock_limit
