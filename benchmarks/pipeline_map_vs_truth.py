@@ -63,6 +63,10 @@ def main():
               f"{np.nanmean(ratio):.3f}, min {np.nanmin(ratio):.3f}, cells below 0.99: {int((ratio < 0.99).sum())}; "
               f"spark - truth table: RMS {np.sqrt(np.mean(ds ** 2)):.1f} deg (MBT cells of the truth, n = {int(mbt.sum())}: "
               f"{np.sqrt(np.mean(ds[mbt] ** 2)):.1f} deg); truth knock index >= {1.0} at {int((knock >= 1.0).sum())} cells")
+        kn = (both["limited_by_truth"] == "knock").to_numpy()
+        print(f"    truth knock-limited cells (n = {int(kn.sum())}): run spark - truth border mean {ds[kn].mean():+.1f} deg, "
+              f"{int((ds[kn] > 1.0).sum())} more than 1 deg past it, max {ds[kn].max():+.1f}; truth knock index at "
+              f"the run's spark there: median {np.median(knock[kn]):.2f}, max {knock[kn].max():.2f}")
 
 
 if __name__ == "__main__":

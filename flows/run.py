@@ -211,14 +211,7 @@ def _virtual_bench_stage(work: Path, cal_spec, overrides: dict, spec: str | None
     if len(good) < 6:
         raise RuntimeError(f"identification: only {len(good)} of {len(ident)} virtual-bench points were identified "
                            "within tolerance; a map model needs >= 6 (see virtual_bench/identified.parquet)")
-    # the global model sees load (the calibrated cycle model's plenum pressure ratio over throttle x speed), not
-    # throttle angle, and fits log outputs (docs/sections/mapmodel.md: hold-out 3.04 deg / 0.73 against 3.29 / 1.59
-    # for the untransformed throttle model, refitted on the same identifications)
-    from engine_model.load_table import build_load_table
-    load = build_load_table(cal_spec, evaluate=SweepEvaluator(work / "sweeps", addr, spec=spec, step_deg=1.0,
-                                                              tolerance=1e-2, label="load", progress=progress,
-                                                              overrides=overrides))
-    model = fit_map_model(good, spec=cal_spec, load_table=load, output_transform="log")
+    model = fit_map_model(good, spec=cal_spec)
     model.save(mdir / "model.json")
     cv = model.cv_table()
     write_parquet(cv, mdir / "cv.parquet")
