@@ -8,6 +8,11 @@ with several model families (:mod:`engine_model.surrogates`: a polynomial
 response surface with PRESS term selection, a Gaussian process), chooses the
 family per output by K-fold cross-validation, and predicts with uncertainty.
 
+With ``parametrisation='phasing'`` the fitted outputs are the CA50 offset
+(ignition-to-CA50 angle) and m, and BDUR10-90 is derived from them: sweep
+identification without a pressure sensor fixes the phasing far better than
+either burn parameter (measured in docs/sections/mapmodel.md).
+
 Its ``predict(points)`` has the same protocol as the truth engine's
 :meth:`engine_model.burnlaw.BurnLaw.predict`, so either can drive the
 table-building code.
