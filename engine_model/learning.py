@@ -34,7 +34,7 @@ from . import doe
 from .burnlaw import OUTPUT_COLUMNS
 from .mapmodel import MapModel
 
-__all__ = ["DESIGNS", "bench_identify", "bench_feasibility", "design_plan", "grid_levels", "holdout_grid", "noisy_truth", "learning_curve",
+__all__ = ["DESIGNS", "bench_identify", "bench_feasibility", "design_plan", "grid_levels", "holdout_grid", "noisy_truth", "phasing_noisy_truth", "learning_curve",
            "summarise", "points_to_reach", "plot_learning_curve", "nearest_feasible"]
 
 #: Designs :func:`design_plan` knows.
@@ -233,6 +233,54 @@ def noisy_truth(law, sigma_bdur_deg: float = 1.5, sigma_m: float = 0.4, seed: in
         if feasible is not None:
             bad = ~np.asarray(feasible(out), bool)
             out.loc[bad, ["bdur_10_90_deg", "wiebe_m"]] = np.nan
+        return out
+
+    return identify
+
+
+#: Joint spark-sweep identification's error, measured on the virtual bench (benchmarks/identification_error.py,
+#: docs/data/identification_error.csv: 16 sweeps, throttle 20-100 % x 5000-13000 rpm, 5 sparks -15..+5 deg
+#: from the MBT prior, bench noise on, quick solver): RMSE of the CA50 offset 0.65 deg, of m 0.90, their
+#: correlation +0.75 (BDUR10-90 2.81 deg, correlated -0.99 with m: the errors lie along the iso-phasing ridge).
+IDENT_SIGMA_CA50_OFFSET_DEG = 0.65
+IDENT_SIGMA_M = 0.90
+IDENT_RHO_CA50_OFFSET_M = 0.75
+
+
+def phasing_noisy_truth(law, sigma_ca50_offset_deg: float = IDENT_SIGMA_CA50_OFFSET_DEG,
+                        sigma_m: float = IDENT_SIGMA_M, rho: float = IDENT_RHO_CA50_OFFSET_M, seed: int = 0,
+                        feasible: Callable[[pd.DataFrame], np.ndarray] | None = None
+                        ) -> Callable[[pd.DataFrame], pd.DataFrame]:
+    """A cheap ``identify`` whose errors have the structure of real sweep identification.
+
+    The truth's (BDUR10-90, m) are converted to (CA50 offset, m) (the ignition-to-CA50 angle,
+    :func:`engine_model.mapmodel.ca50_offset_deg`), both get bivariate normal noise (sigmas
+    ``sigma_ca50_offset_deg`` [deg], ``sigma_m`` [-], correlation ``rho``), and BDUR10-90 is the burn with the
+    noisy offset and m (:func:`engine_model.mapmodel.bdur_10_90_from_ca50_offset`).  The defaults are the
+    measured ones (:data:`IDENT_SIGMA_CA50_OFFSET_DEG`, :data:`IDENT_SIGMA_M`, :data:`IDENT_RHO_CA50_OFFSET_M`).
+    Seeding, masking and the returned columns as in :func:`noisy_truth`; ``ca50_offset_deg`` is added.
+    """
+    from .mapmodel import bdur_10_90_from_ca50_offset, ca50_offset_deg
+    from .virtual_bench import point_rng
+
+    if not (sigma_ca50_offset_deg >= 0 and sigma_m >= 0 and -1 <= rho <= 1):
+        raise ValueError(f"phasing_noisy_truth: sigmas must be >= 0 and rho in [-1, 1], got "
+                         f"{sigma_ca50_offset_deg!r}, {sigma_m!r}, {rho!r}")
+
+    def identify(plan: pd.DataFrame) -> pd.DataFrame:
+        out = plan.reset_index(drop=True).copy()
+        y = law.predict(out)
+        z = np.array([point_rng(seed, f"{pid}|{r.throttle_pct:.6g}|{r.speed_rpm:.6g}|{r.spark_deg_btdc:.6g}")
+                      .standard_normal(2) for pid, r in zip(out["point_id"], out.itertuples())]).reshape(-1, 2)
+        m = y["wiebe_m"].to_numpy() + sigma_m * z[:, 0]
+        off = ca50_offset_deg(y["bdur_10_90_deg"].to_numpy(), y["wiebe_m"].to_numpy()) + sigma_ca50_offset_deg * (
+            rho * z[:, 0] + math.sqrt(1.0 - rho * rho) * z[:, 1])
+        out["bdur_10_90_deg"] = bdur_10_90_from_ca50_offset(off, m)
+        out["wiebe_m"] = m
+        out["ca50_offset_deg"] = off
+        if feasible is not None:
+            bad = ~np.asarray(feasible(out), bool)
+            out.loc[bad, ["bdur_10_90_deg", "wiebe_m", "ca50_offset_deg"]] = np.nan
         return out
 
     return identify

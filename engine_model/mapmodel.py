@@ -8,6 +8,11 @@ with several model families (:mod:`engine_model.surrogates`: a polynomial
 response surface with PRESS term selection, a Gaussian process), chooses the
 family per output by K-fold cross-validation, and predicts with uncertainty.
 
+With ``parametrisation='phasing'`` the fitted outputs are the CA50 offset
+(ignition-to-CA50 angle) and m, and BDUR10-90 is derived from them: sweep
+identification without a pressure sensor fixes the phasing far better than
+either burn parameter (measured in docs/sections/mapmodel.md).
+
 Its ``predict(points)`` has the same protocol as the truth engine's
 :meth:`engine_model.burnlaw.BurnLaw.predict`, so either can drive the
 table-building code.
@@ -39,15 +44,36 @@ import numpy as np
 import pandas as pd
 
 from . import io as _io
+from . import wiebe
 from ._blas import single_thread_blas
 from .burnlaw import INPUT_COLUMNS, OUTPUT_COLUMNS, check_points
 from .surrogates import FAMILIES, make_family
 
-__all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT"]
+__all__ = ["MapModel", "fit_map_model", "load", "kfold_indices", "FORMAT", "PARAMETRISATIONS", "CA50_OFFSET",
+           "ca50_offset_deg", "bdur_10_90_from_ca50_offset"]
 
-#: ``kind`` tag and version of the saved JSON (version 2 adds the load table; version 1 files still load).
-FORMAT = {"kind": "mbc_map_model", "version": 2}
-_READABLE_VERSIONS = (1, 2)
+#: ``kind`` tag and version of the saved JSON (version 2 adds the load table, version 3 the parametrisation;
+#: version 1 and 2 files still load, as the 'bdur_m' parametrisation).
+FORMAT = {"kind": "mbc_map_model", "version": 3}
+_READABLE_VERSIONS = (1, 2, 3)
+
+#: Ignition-to-CA50 angle [deg]: CA50 [deg ATDC] + spark [deg BTDC], the combustion phasing of a Wiebe burn
+#: that starts at the spark (``CA50 - SOC`` in the issue's words, SOC counted in deg ATDC).
+CA50_OFFSET = "ca50_offset_deg"
+#: What the model fits: 'bdur_m' fits BDUR10-90 and m; 'phasing' fits the CA50 offset and m and derives
+#: BDUR10-90 from them (:func:`bdur_10_90_from_ca50_offset`).
+PARAMETRISATIONS = ("bdur_m", "phasing")
+
+
+def ca50_offset_deg(bdur_10_90_deg, m):
+    """Ignition-to-CA50 angle [deg] of a Wiebe burn: ``BDUR (ln2/a)^(1/(m+1))`` with BDUR from BDUR10-90 (eq 4-5)."""
+    return wiebe.burn_angles(0.0, bdur_10_90_deg, m)["ca50_deg_atdc"]
+
+
+def bdur_10_90_from_ca50_offset(offset_deg, m):
+    """BDUR10-90 [deg] of the Wiebe burn with ignition-to-CA50 angle ``offset_deg`` [deg] and shape ``m``."""
+    unit50 = wiebe.angle_at_fraction(0.5, 0.0, 1.0, m)          # CA50 of a unit-duration burn from SOC 0
+    return wiebe.bdur_to_bdur_10_90(np.asarray(offset_deg, float) / unit50, m)
 
 _SPARK_REFS = ("estimate", "absolute")
 _EXTRAPOLATION = ("clamp", "linear", "extend")
@@ -108,10 +134,22 @@ class MapModel:
         throttle at part load.  The table is stored in the model file; its
         spec hash must match the fit's.  A point outside the table's grid is
         flagged as extrapolation.
+    parametrisation : {'bdur_m', 'phasing'}
+        'bdur_m' (default) fits BDUR10-90 and m.  'phasing' fits the CA50
+        offset (ignition-to-CA50 angle, :data:`CA50_OFFSET`, computed from the
+        data's BDUR10-90 and m) and m, and predicts BDUR10-90 from the two:
+        identification without a pressure sensor pins the phasing much better
+        than either burn parameter (their errors are correlated along the
+        iso-phasing ridge, docs/sections/mapmodel.md), and MBT follows the
+        phasing.  Needs both outputs; ``predict`` adds ``ca50_offset_deg``.
+        The per-point std of the offset is read from ``ca50_offset_deg_std``
+        if the data have it (the independent BDUR10-90 and m bounds would
+        overstate it).
 
     Attributes (after ``fit``)
     ----------
-    chosen_ : dict output -> family
+    chosen_ : dict fitted output -> family (fitted outputs: ``outputs``, or
+        ``ca50_offset_deg, wiebe_m`` with ``parametrisation='phasing'``)
     cv_rmse_ : dict output -> {family: K-fold CV RMSE [output unit]}
     std_scale_ : dict output -> factor applied to the chosen family's std so
         that, over the CV folds, std^2 matches the held-out error^2 minus the
@@ -128,7 +166,7 @@ class MapModel:
 
     def __init__(self, *, families=("poly", "gp"), factors=INPUT_COLUMNS, outputs=OUTPUT_COLUMNS,
                  spark_reference: str = "estimate", k_folds: int = 5, seed: int = 0, extrapolation: str = "clamp",
-                 load_table=None, output_transform: str = "none"):
+                 load_table=None, output_transform: str = "none", parametrisation: str = "bdur_m"):
         self.families = tuple(families)
         self.factors = tuple(factors)
         self.outputs = tuple(outputs)
@@ -138,6 +176,11 @@ class MapModel:
         self.extrapolation = extrapolation
         self.load_table = load_table
         self.output_transform = output_transform
+        self.parametrisation = parametrisation
+
+    def _fitted_outputs(self) -> tuple[str, ...]:
+        """The outputs the surrogates model (``outputs``, or the CA50 offset and m)."""
+        return (CA50_OFFSET, "wiebe_m") if self.parametrisation == "phasing" else self.outputs
 
     # ------------------------------------------------------------------ inputs
     def _check_settings(self):
@@ -157,6 +200,11 @@ class MapModel:
             raise ValueError("MapModel: no outputs")
         if self.output_transform not in ("none", "log"):
             raise ValueError(f"MapModel: output_transform = {self.output_transform!r}; choose 'none' or 'log'")
+        if self.parametrisation not in PARAMETRISATIONS:
+            raise ValueError(f"MapModel: parametrisation = {self.parametrisation!r}; choose from {PARAMETRISATIONS}")
+        if self.parametrisation == "phasing" and sorted(self.outputs) != sorted(OUTPUT_COLUMNS):
+            raise ValueError(f"MapModel: parametrisation='phasing' needs outputs {list(OUTPUT_COLUMNS)} (the CA50 "
+                             f"offset is computed from both), got {list(self.outputs)}")
         if self.extrapolation not in _EXTRAPOLATION:
             raise ValueError(f"MapModel: extrapolation = {self.extrapolation!r}; choose from {_EXTRAPOLATION}")
         if self.load_table is not None:
@@ -222,6 +270,17 @@ class MapModel:
             raise ValueError(f"MapModel.fit: data lack output column(s) {missing}")
         xm = self._model_coords(data, "MapModel.fit")
         ys = {o: pd.to_numeric(data[o], errors="coerce").to_numpy(float) for o in self.outputs}
+        if self.parametrisation == "phasing":
+            b, m = ys.pop("bdur_10_90_deg"), ys.pop("wiebe_m")
+            good = np.isfinite(b) & np.isfinite(m) & (b > 0) & (m > -1)
+            off = np.full(len(b), np.nan)
+            off[good] = ca50_offset_deg(b[good], m[good])
+            bad = (np.isfinite(b) & np.isfinite(m)) & ~good
+            if bad.any():
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(f"MapModel.fit: row {i}: bdur_10_90_deg = {b[i]:g}, wiebe_m = {m[i]:g}; the "
+                                 "'phasing' parametrisation needs BDUR10-90 > 0 and m > -1")
+            ys = {CA50_OFFSET: off, "wiebe_m": m}
         ok = np.all([np.isfinite(v) for v in ys.values()], axis=0)
         ids = data["point_id"].astype(str).to_numpy() if "point_id" in data.columns else np.arange(len(data))
         self.excluded_ = [str(i) for i in ids[~ok]]
@@ -253,7 +312,7 @@ class MapModel:
         k = min(self.k_folds, n)
         folds = kfold_indices(n, k, self.seed)
         self.cv_rmse_, self.chosen_, self.models_, self.std_scale_ = {}, {}, {}, {}
-        for o in self.outputs:
+        for o in self._fitted_outputs():
             y_out = ys[o][ok]
             ystd = None
             if f"{o}_std" in data.columns:
@@ -320,7 +379,7 @@ class MapModel:
         x = self._coded(xm)
         out = {}
         xe = x if self.extrapolation == "extend" else np.clip(x, -1.0, 1.0)
-        for o in self.outputs:
+        for o in self._fitted_outputs():
             with single_thread_blas():
                 mean, std = self.models_[o].predict(xe)
                 if self.extrapolation == "linear":
@@ -329,6 +388,8 @@ class MapModel:
                 mean = np.exp(mean)
                 std = std * mean                           # delta method
             out[o], out[f"{o}_std"] = mean, std * self.std_scale_.get(o, 1.0)
+        if self.parametrisation == "phasing":
+            out = self._from_phasing(out)
         extra = np.zeros(len(points), dtype=bool)
         if x.size:
             extra |= np.any(np.abs(x) > 1.02, axis=1)
@@ -339,6 +400,25 @@ class MapModel:
             extra |= ~self.load_table.covers(xp["throttle_pct"], xp["speed_rpm"])
         out["extrapolation"] = extra
         return pd.DataFrame(out, index=points.index)
+
+    def _from_phasing(self, fitted: dict) -> dict:
+        """(CA50 offset, m) predictions -> outputs in ``self.outputs`` order, BDUR10-90 with a delta-method std
+        (offset and m errors taken as independent), then the offset and its std.  BDUR10-90 is NaN where the
+        predicted offset is <= 0 or m <= -1 (possible only without the log transform, far outside the data)."""
+        off, m = fitted[CA50_OFFSET], fitted["wiebe_m"]
+        # an untransformed surface extended or continued beyond the data can leave the Wiebe domain: no burn there
+        ok = np.isfinite(off) & np.isfinite(m) & (off > 0) & (m > -1 + 1e-3)
+        b, b_std = np.full(len(off), np.nan), np.full(len(off), np.nan)
+        o, mm, h = off[ok], m[ok], 1e-4
+        b[ok] = bdur_10_90_from_ca50_offset(o, mm)
+        db_dm = (bdur_10_90_from_ca50_offset(o, mm + h) - bdur_10_90_from_ca50_offset(o, mm - h)) / (2 * h)
+        b_std[ok] = np.hypot(b[ok] / o * fitted[f"{CA50_OFFSET}_std"][ok], db_dm * fitted["wiebe_m_std"][ok])
+        full = {"bdur_10_90_deg": b, "bdur_10_90_deg_std": b_std, "wiebe_m": m, "wiebe_m_std": fitted["wiebe_m_std"]}
+        out = {}
+        for o in self.outputs:
+            out[o], out[f"{o}_std"] = full[o], full[f"{o}_std"]
+        out[CA50_OFFSET], out[f"{CA50_OFFSET}_std"] = off, fitted[f"{CA50_OFFSET}_std"]
+        return out
 
     @staticmethod
     def _linear_continuation(est, x: np.ndarray, xc: np.ndarray, mean_c: np.ndarray) -> np.ndarray:
@@ -363,7 +443,7 @@ class MapModel:
         return add
 
     def cv_table(self) -> pd.DataFrame:
-        """K-fold CV RMSE per output and family: ``output, family, cv_rmse, chosen``."""
+        """K-fold CV RMSE per fitted output and family: ``output, family, cv_rmse, chosen``."""
         self._check_fitted()
         rows = [{"output": o, "family": f, "cv_rmse": v, "chosen": f == self.chosen_[o]}
                 for o, s in self.cv_rmse_.items() for f, v in s.items()]
@@ -392,7 +472,7 @@ class MapModel:
                 "k_folds": self.k_folds, "seed": self.seed, "extrapolation": self.extrapolation,
                 "spec_hash": self.spec_hash_,
                 "load_table": None if self.load_table is None else self.load_table.to_dict(),
-                "output_transform": self.output_transform,
+                "output_transform": self.output_transform, "parametrisation": self.parametrisation,
                 "ranges": [[k, *v] for k, v in self.ranges_.items()],  # a list: JSON sorts keys, order matters
                 "fixed_factors": self.fixed_factors_,
                 "n_points": self.n_points_, "excluded": self.excluded_, "cv_rmse": self.cv_rmse_,
@@ -418,7 +498,11 @@ class MapModel:
             obj = cls(families=d["families"], factors=d["factors"], outputs=d["outputs"],
                       spark_reference=d["spark_reference"], k_folds=d["k_folds"], seed=d["seed"],
                       extrapolation=d.get("extrapolation", "clamp"), load_table=table,
-                      output_transform=d.get("output_transform", "none"))
+                      output_transform=d.get("output_transform", "none"),
+                      parametrisation=d.get("parametrisation", "bdur_m"))
+            if obj.parametrisation not in PARAMETRISATIONS:
+                raise ValueError(f"{source}: parametrisation {obj.parametrisation!r} is not one of "
+                                 f"{PARAMETRISATIONS}")
             obj.spec_hash_ = d["spec_hash"]
             obj.ranges_ = {k: (float(lo), float(hi)) for k, lo, hi in d["ranges"]}
             obj.fixed_factors_ = {k: float(v) for k, v in d["fixed_factors"].items()}

@@ -456,12 +456,23 @@ def test_grid_from_an_ecu_table_csv(tmp_path):
 
 @pytest.fixture(scope="module")
 def fitted_map():
-    """A MapModel fitted on 48 noisy identifications of the hidden law builds the table; the truth judges it.
+    """A MapModel fitted on 48 identifications of the hidden law with the *measured* error structure builds the
+    table; the truth judges it.
 
-    Identification noise 1.7 deg on BDUR10-90 and 0.6 on m: what joint spark-sweep identification achieved against
-    the hidden law on the virtual bench (docs/sections/identify_sweep.md).  The model is the improved one of
-    docs/sections/mapmodel.md: log outputs and the simulated plenum-pressure ratio as the load coordinate (a load
-    table of the cycle model over the data's throttle 20-100 % x 5000-13000 rpm, the default breakpoints there).
+    Identification errors: joint spark-sweep identification on the virtual bench (benchmarks/identification_error.py,
+    docs/data/identification_error.csv; 16 sweeps over throttle 20-100 % x 5000-13000 rpm, sparks -15..+5 deg from
+    the MBT prior, bench noise on) missed BDUR10-90 by 2.81 deg and m by 0.90 RMS, but the two errors were
+    correlated -0.99: they trade along the ridge of constant phasing, and the CA50 offset (ignition to CA50) was off
+    by only 0.65 deg RMS (correlation with the m error +0.75).  ``learning.phasing_noisy_truth`` draws the noise in
+    (CA50 offset, m) with exactly these numbers; the independent 1.7 deg / 0.6 used before implied a 9-10 deg
+    CA50-offset error.  Noise seed 1, as before the change (not chosen: see the pass rates over 30 seeds in
+    docs/sections/mapmodel.md).
+
+    Model: the CA50 offset and m are fitted ('phasing' parametrisation), log outputs, the simulated plenum-pressure
+    ratio as load coordinate (a load table of the cycle model over the data's throttle 20-100 % x 5000-13000 rpm,
+    the default breakpoints there), lambda left out (in this plan it is a function of throttle), and the linear
+    continuation beyond the spark range of the data (the truth's MBT at WOT 12000 rpm lies ~14 deg beyond the MBT
+    prior, outside the planned -20..+5 deg; a flat continuation misses it by 3-4 deg even without noise).
     Returns the built map and, per feasible cell, a 1-deg brute-force sweep of the truth +-10 deg around the table.
     """
     from engine_model import learning
@@ -474,10 +485,11 @@ def fitted_map():
                                           "throttle_pct": (20.0, 100.0)}, seed=7)
     pts = learning._absolute_spark(pts)
     pts["point_id"] = [f"lhs{i}" for i in range(len(pts))]
-    data = learning.noisy_truth(law, sigma_bdur_deg=1.7, sigma_m=0.6, seed=1)(pts)
+    data = learning.phasing_noisy_truth(law, seed=1)(pts)
     table = build_load_table(spec, throttle_pct=[t for t in DEFAULT_THROTTLE_PCT if t >= 20],
                              speed_rpm=[n for n in DEFAULT_SPEED_RPM if n >= 5000])
-    model = MapModel(output_transform="log", load_table=table).fit(data, spec)
+    model = MapModel(output_transform="log", load_table=table, parametrisation="phasing",
+                     factors=("throttle_pct", "speed_rpm", "spark_deg_btdc"), extrapolation="linear").fit(data, spec)
     res = build_maps(spec, model, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
     sweeps = {}
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
@@ -499,9 +511,9 @@ def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
     """Issue acceptance, torque part: in every feasible cell the truth's torque at the table spark is within 1 % of
     the truth's best knock-safe torque (brute-force 1-deg sweep +-10 deg around the table value).
 
-    Measured (seed 1): torque ratio 0.996 / 0.991 / 0.998 / 0.995 at 30 % 7000 / 30 % 12000 / WOT 7000 / WOT 12000 rpm;
-    the untransformed throttle-coordinate model gave 0.986 at 30 % / 7000 rpm (fails).  30 % / 12000 rpm sits at
-    spark_max (70 deg) with the truth law itself too (0.991): the truth's MBT there is ~77 deg BTDC.
+    Measured (seed 1): torque ratio 0.997 / 0.991 / 1.000 / 1.000 at 30 % 7000 / 30 % 12000 / WOT 7000 / WOT 12000
+    rpm; 30 % / 12000 rpm sits at spark_max (70 deg) with the truth law itself too (0.991): the truth's MBT there is
+    ~77 deg BTDC.  Over 30 noise seeds this part passes for 28 (the independent-noise BDUR10-90/m fixture: 19).
     """
     res, sweeps = fitted_map
     lim = res.settings.knock_limit
@@ -510,14 +522,17 @@ def test_fitted_global_model_map_torque_within_1_pct_of_the_truth(fitted_map):
         _check_torque_at_table(cell, sweeps[int(cell["cell"])], lim)
 
 
-@pytest.mark.xfail(strict=True, reason="measured 2026-11-23: MBT is not within 2 deg of the truth's in any of the "
-                   "3 MBT-limited cells (30 % / 7000 rpm: table 36.4 vs truth 32.0 deg; WOT 7000: 31.3 vs 28.1; WOT "
-                   "12000: 64.0 vs 70.3).  Variance-limited: over 20 noise seeds the CA50-spark proxy of MBT scatters "
-                   "by 2-5 deg (1 sd) per cell for every model variant tried; see docs/sections/mapmodel.md")
 def test_fitted_global_model_map_against_the_truth_mbt_and_torque(fitted_map):
     """Issue acceptance with the *fitted* global model (see ``fitted_map``): torque within 1 % in every feasible
     cell, and where the table is MBT-limited its MBT within 2 deg of the truth's (parabola vertex of a 1-deg
     brute-force sweep).
+
+    Measured (noise seed 1): 30 % / 7000 rpm 33.8 vs 31.9 deg, WOT 7000 rpm 28.8 vs 28.1 deg; WOT 12000 and
+    30 % / 12000 rpm sit at spark_max (70 deg; the truth's MBT is 70.3 and ~77 deg there).  The margin is thin
+    (1.9 of 2 deg at 30 % / 7000 rpm, where the fit is biased +1.3 deg on average): over 30 noise seeds
+    (benchmarks/fitted_map_seeds.py) the whole test passes for 23, for 14 of the 20 seeds not used to choose the
+    model settings.  With the previous independent-noise fixture and BDUR10-90/m model: 1 of 30.  A failure
+    after a numerical change therefore means this margin first, not necessarily a regression.
     """
     res, sweeps = fitted_map
     lim = res.settings.knock_limit
