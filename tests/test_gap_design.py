@@ -99,3 +99,62 @@ def test_scattered_points_keep_the_earlier_folds():
     old = np.full(20, -1)
     old[idx[np.random.default_rng(0).permutation(idx.size)]] = np.arange(idx.size) % 5
     np.testing.assert_array_equal(new, old)
+
+
+class _StandInBench:
+    """Bench whose engine knocks above ``limit(speed)`` deg BTDC; torque = spark (to see what ran)."""
+
+    def __init__(self, limit):
+        self.limit = limit
+        self.calls = []
+
+    def measure(self, plan, evaluate=None):
+        self.calls.append(list(plan["point_id"]))
+        s = plan["spark_deg_btdc"].to_numpy(float)
+        knock = s > self.limit(plan["speed_rpm"].to_numpy(float))
+        out = plan.copy()
+        out["brake_torque_nm"] = np.where(knock, np.nan, s)
+        out["status"] = np.where(knock, "knock_abort", "ok")
+        return out
+
+
+def test_bench_backoff_retards_knocking_points_until_they_run():
+    from engine_model.gap.benchmark import BENCH_BACKOFF_DEG, backoff_id, measure_with_backoff
+
+    plan = pd.DataFrame({"point_id": ["a", "b", "c", "d"], "speed_rpm": [6000.0, 7000.0, 9000.0, 6500.0],
+                         "throttle_pct": [90.0] * 4, "lambda": [0.9] * 4,
+                         "spark_deg_btdc": [40.0, 41.0, 45.0, 60.0]})
+    # limit 33 deg below 8000 rpm: a needs 2 steps (40 -> 32), b 2 steps (41 -> 33), c runs as planned,
+    # d would need 7 steps and stays flagged after the maximum of 3
+    bench = _StandInBench(lambda n: np.where(n < 8000.0, 33.0, 90.0))
+    run, meas = measure_with_backoff(bench, plan, evaluate=None)
+    assert list(run["point_id"]) == [backoff_id("a", 8), backoff_id("b", 8), "c", backoff_id("d", 12)]
+    assert list(meas["point_id"]) == list(run["point_id"])
+    np.testing.assert_allclose(run["spark_deg_btdc"], [32.0, 33.0, 45.0, 48.0])
+    np.testing.assert_allclose(run["bench_backoff_deg"], [2 * BENCH_BACKOFF_DEG, 2 * BENCH_BACKOFF_DEG, 0.0, 12.0])
+    assert list(meas["status"]) == ["ok", "ok", "ok", "knock_abort"]
+    np.testing.assert_allclose(meas["brake_torque_nm"].to_numpy()[:3], [32.0, 33.0, 45.0])
+    # only the knocking points are re-run
+    assert bench.calls[0] == ["a", "b", "c", "d"] and all("c" not in c for c in bench.calls[1:])
+    # nothing knocks: the plan runs unchanged, once
+    bench = _StandInBench(lambda n: np.full_like(n, 90.0))
+    run, meas = measure_with_backoff(bench, plan, evaluate=None)
+    assert list(run["point_id"]) == list(plan["point_id"]) and len(bench.calls) == 1
+    assert (run["bench_backoff_deg"] == 0).all()
+
+
+def test_linearisation_select_rows():
+    from engine_model.gap.linear import BaseModel, Linearisation
+
+    pts = pd.DataFrame({"point_id": ["p0", "p1", "p2"], "speed_rpm": [6000.0, 8000.0, 10000.0]})
+    jac = np.arange(3 * 2 * 4, dtype=float).reshape(3, 2, 4)
+    lin = Linearisation(points=pts, outputs=("a", "b"), y_ref=np.arange(6.0).reshape(3, 2),
+                        columns=[("base", "x")] * 4, steps=np.ones(4), jac=jac, ok=np.array([True, False, True]),
+                        status=["", "bad", ""], theta={}, base=BaseModel())
+    sub = lin.select(["p2", "p0"])
+    assert list(sub.points["point_id"]) == ["p2", "p0"]
+    np.testing.assert_array_equal(sub.jac, jac[[2, 0]])
+    np.testing.assert_array_equal(sub.y_ref, lin.y_ref[[2, 0]])
+    assert list(sub.ok) == [True, True] and sub.status == ["", ""]
+    with pytest.raises(ValueError, match="'p9'"):
+        lin.select(["p0", "p9"])

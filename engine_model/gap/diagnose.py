@@ -453,7 +453,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     nobs = r.size
 
     # ---- noise calibration (same design, pure noise)
-    key = (tuple(pidx), tuple(oidx), tuple(folds), tuple(cands), k_folds, seed, n_noise, alpha)
+    key = (tuple(lin.points["point_id"].astype(str)), tuple(pidx), tuple(oidx), tuple(folds), tuple(cands), k_folds,
+           seed, n_noise, alpha)
     if noise_cache is not None and key in noise_cache:
         thr, q_chi2, noise_best = noise_cache[key]
     else:
