@@ -14,6 +14,8 @@ from engine_model.gap.benchmark import SWEEP_STEP_DEG, SWEEP_STEPS, benchmark_pl
 from engine_model.gap.diagnose import _make_folds, operating_point_groups
 from engine_model.bench import load_bench
 
+SPARK_BASE = ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
+
 
 def _knock_model(limit_offset):
     """Knock index 1 at (MBT prior - limit_offset(speed)), rising 0.1 per deg of advance beyond it."""
@@ -76,12 +78,18 @@ def test_folds_keep_a_sweep_together():
     assert not all(np.unique(f0[g == k]).size == 1 for k in np.unique(g))
 
 
-def test_base_gets_the_spark_slope_only_from_sweeps():
+def test_base_gets_the_spark_slope_only_where_the_sparks_span_it():
     ev = _knock_model(lambda n: np.full_like(n, -30.0))
     sweep = choose_base(benchmark_plan(32, evaluate=ev, design="sweep"))
     assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
-    scattered = choose_base(benchmark_plan(32, evaluate=ev, design="sobol"))
-    assert scattered.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    # scattered, no knock: sparks 0-6 deg below the prior (span < 6 deg) -> no spark term
+    plan = benchmark_plan(32, evaluate=ev, design="sobol")
+    ds = plan["spark_deg_btdc"] - doe.spark_estimate(plan["speed_rpm"].to_numpy(), plan["throttle_pct"].to_numpy())
+    assert np.ptp(ds) < 6.0
+    assert choose_base(plan).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    # scattered with knock back-offs below 9000 rpm: sparks spread over > 6 deg -> the spark term is carried
+    knocky = benchmark_plan(32, evaluate=_knock_model(lambda n: np.where(n < 9000.0, 5.0, -30.0)), design="sobol")
+    assert choose_base(knocky).params == SPARK_BASE
     table2 = choose_base(load_bench(None))          # one WOT line, one spark per speed
     assert table2.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm")
 

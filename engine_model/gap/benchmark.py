@@ -264,7 +264,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     design : str
         ``"sweep"`` or ``"sobol"``, see :func:`benchmark_plan`.
     base : BaseModel, optional
-        Default :func:`engine_model.gap.api.choose_base` of the plan.
+        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench.
     evaluate : callable(plan) -> results, optional
         Default: in-process ``simulate`` with ``solver``.
     verify : bool
@@ -282,7 +282,9 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     -------
     dict
         ``table`` (DataFrame, :data:`BENCHMARK_COLUMNS` + detail columns), ``summary`` (DataFrame),
-        ``plan``, ``base_theta``, ``verification`` (DataFrame), ``timing`` (dict), ``linearisation``.
+        ``plan``, ``base_theta``, ``verification`` (DataFrame), ``timing`` (dict), ``linearisation`` (of the
+        union of the plans as run), per case (``(effect, magnitude)`` keys) ``plans`` as run, noiseless
+        ``truth`` and ``linearisations``, and ``diagnoses`` per ``(effect, magnitude, seed)``.
     """
     from ..simulate import simulate
     from ..virtual_bench import NoiseModel, VirtualBench, apply_noise
@@ -302,8 +304,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     names = list(EFFECTS) if effects is None else [get_effect(e).name for e in effects]
     t0 = time.perf_counter()
     plan = benchmark_plan(n_points, plan_seed, spec, ev, solver, design=design)
-    base = choose_base(plan) if base is None else base
-    say(f"plan: {len(plan)} points, design {design}, base {base.params} ({time.perf_counter() - t0:.0f} s)")
+    say(f"plan: {len(plan)} points, design {design} ({time.perf_counter() - t0:.0f} s)")
     cases = _cases(names, magnitudes)
     truth = {}
     plans = {}
@@ -324,6 +325,9 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         f"bench: {sorted(set(n_back.values()))}")
     null = truth[("none", 0.0)]
     null_plan = plans[("none", 0.0)]
+    # the base the data as run can carry (the bench back-off spreads the sparks)
+    base = choose_base(null_plan) if base is None else base
+    say(f"base: {base.params}")
     theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
     t_cal = time.perf_counter() - t0 - t_truth
     say(f"base calibration on the null case: {theta} ({t_cal:.0f} s)")
@@ -380,7 +384,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
               "seeds": seed_list}
     return {"table": table, "summary": summarise_benchmark(table), "plan": plan, "base_theta": theta,
             "verification": pd.DataFrame(ver), "timing": timing, "linearisation": lin_all, "diagnoses": diags,
-            "plans": plans}
+            "plans": plans, "truth": truth, "linearisations": lins}
 
 
 def _verify(plans, lins, truth, diags, names, seed, ev, spec) -> list[dict]:
