@@ -166,3 +166,17 @@ def test_linearisation_select_rows():
     assert list(sub.ok) == [True, True] and sub.status == ["", ""]
     with pytest.raises(ValueError, match="'p9'"):
         lin.select(["p0", "p9"])
+
+
+def test_spark_slope_needs_enough_scattered_points():
+    # sparks +-3.2 deg about the MBT prior (span 6.4 deg, std 3.2 deg) at varied speed and throttle:
+    # 8 points give std x sqrt(n) = 9.1 deg < 10 (slope not pinned), 16 points 12.8 deg (carried)
+    def table(n):
+        rng = np.random.default_rng(3)
+        sp = rng.uniform(6000, 12500, n)
+        th = rng.uniform(30, 100, n)
+        ds = np.where(np.arange(n) % 2 == 0, 3.2, -3.2)
+        return pd.DataFrame({"speed_rpm": sp, "throttle_pct": th, "lambda": 0.9,
+                             "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th)) + ds})
+    assert choose_base(table(8)).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    assert choose_base(table(16)).params == SPARK_BASE
