@@ -22,9 +22,10 @@ Steps of :func:`diagnose`:
    base-corrected residual that the candidate's sensitivity pattern spans);
    a candidate is *claimed* only when its held-out improvement beats the
    (1 - alpha) quantile of the best improvement that pure noise produces on
-   the same design (Monte Carlo with the same matrices) AND it removes at
-   least half of the held-out gap above noise; otherwise the answer is
-   "no candidate in the library explains it".
+   the same design (Monte Carlo with the same matrices) AND either removes at
+   least half of the held-out gap above noise or leaves a held-out residual
+   no larger than pure noise leaves (its 99 % quantile); otherwise the answer
+   is "no candidate in the library explains it".
 """
 
 from __future__ import annotations
@@ -405,6 +406,14 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         noise to be claimed as the explanation [%].  (An absolute test -- the remaining residual
         consistent with pure noise -- was tried first and claimed nothing on the 32-point benchmark:
         the base's own structural misfit keeps every remaining residual above pure noise.)
+    consistent_rule : bool
+        Also claim a noise-beating candidate whose held-out chi2 is at or below the 99 % quantile of the
+        base's held-out chi2 on pure noise, even if it removes less than ``min_reduction_pct`` of the gap
+        above noise.  Measured on the 32-point benchmark (tuning seeds 0-4): a 5 deg knock retard beat
+        the noise threshold in 3 of 5 trials, two of them removing only 28 % and 44 % of the gap "above
+        noise", whose excess is partly the base's structural misfit; with this rule it is named 3/5
+        instead of 1/5, while the out-of-library bump (held-out chi2 ~2x the quantile after its best
+        candidate) and the null case stay unclaimed.
 
     Returns
     -------
