@@ -12,8 +12,10 @@ library), which the tool must refuse to attribute while still localising it.
 
 Affordability: the truth simulations are noiseless and reused across seeds
 (noise is added afterwards with the bench's own noise model); the DOE is fixed
-across trials, so the base calibration and the Jacobian are computed once
-(on the null case's noiseless data) and every trial is linear algebra.
+across trials except for the points the bench operator backs off for knock
+(:func:`measure_with_backoff`), so the base calibration (on the null case's
+noiseless data) and the Jacobian (on the union of the plans as run) are
+computed once and every trial is linear algebra on its own rows.
 Out of the trials, one per effect and magnitude 1 is verified by a nonlinear
 re-simulation with the named effect at its fitted parameters.
 """
