@@ -14,6 +14,8 @@ from engine_model.gap.benchmark import SWEEP_STEP_DEG, SWEEP_STEPS, benchmark_pl
 from engine_model.gap.diagnose import _make_folds, operating_point_groups
 from engine_model.bench import load_bench
 
+SPARK_BASE = ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
+
 
 def _knock_model(limit_offset):
     """Knock index 1 at (MBT prior - limit_offset(speed)), rising 0.1 per deg of advance beyond it."""
@@ -76,12 +78,18 @@ def test_folds_keep_a_sweep_together():
     assert not all(np.unique(f0[g == k]).size == 1 for k in np.unique(g))
 
 
-def test_base_gets_the_spark_slope_only_from_sweeps():
+def test_base_gets_the_spark_slope_only_where_the_sparks_span_it():
     ev = _knock_model(lambda n: np.full_like(n, -30.0))
     sweep = choose_base(benchmark_plan(32, evaluate=ev, design="sweep"))
     assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
-    scattered = choose_base(benchmark_plan(32, evaluate=ev, design="sobol"))
-    assert scattered.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    # scattered, no knock: sparks 0-6 deg below the prior (span < 6 deg) -> no spark term
+    plan = benchmark_plan(32, evaluate=ev, design="sobol")
+    ds = plan["spark_deg_btdc"] - doe.spark_estimate(plan["speed_rpm"].to_numpy(), plan["throttle_pct"].to_numpy())
+    assert np.ptp(ds) < 6.0
+    assert choose_base(plan).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    # scattered with knock back-offs below 9000 rpm: sparks spread over > 6 deg -> the spark term is carried
+    knocky = benchmark_plan(32, evaluate=_knock_model(lambda n: np.where(n < 9000.0, 5.0, -30.0)), design="sobol")
+    assert choose_base(knocky).params == SPARK_BASE
     table2 = choose_base(load_bench(None))          # one WOT line, one spark per speed
     assert table2.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm")
 
@@ -99,3 +107,76 @@ def test_scattered_points_keep_the_earlier_folds():
     old = np.full(20, -1)
     old[idx[np.random.default_rng(0).permutation(idx.size)]] = np.arange(idx.size) % 5
     np.testing.assert_array_equal(new, old)
+
+
+class _StandInBench:
+    """Bench whose engine knocks above ``limit(speed)`` deg BTDC; torque = spark (to see what ran)."""
+
+    def __init__(self, limit):
+        self.limit = limit
+        self.calls = []
+
+    def measure(self, plan, evaluate=None):
+        self.calls.append(list(plan["point_id"]))
+        s = plan["spark_deg_btdc"].to_numpy(float)
+        knock = s > self.limit(plan["speed_rpm"].to_numpy(float))
+        out = plan.copy()
+        out["brake_torque_nm"] = np.where(knock, np.nan, s)
+        out["status"] = np.where(knock, "knock_abort", "ok")
+        return out
+
+
+def test_bench_backoff_retards_knocking_points_until_they_run():
+    from engine_model.gap.benchmark import BENCH_BACKOFF_DEG, backoff_id, measure_with_backoff
+
+    plan = pd.DataFrame({"point_id": ["a", "b", "c", "d"], "speed_rpm": [6000.0, 7000.0, 9000.0, 6500.0],
+                         "throttle_pct": [90.0] * 4, "lambda": [0.9] * 4,
+                         "spark_deg_btdc": [40.0, 41.0, 45.0, 60.0]})
+    # limit 33 deg below 8000 rpm: a needs 2 steps (40 -> 32), b 2 steps (41 -> 33), c runs as planned,
+    # d would need 7 steps and stays flagged after the maximum of 3
+    bench = _StandInBench(lambda n: np.where(n < 8000.0, 33.0, 90.0))
+    run, meas = measure_with_backoff(bench, plan, evaluate=None)
+    assert list(run["point_id"]) == [backoff_id("a", 8), backoff_id("b", 8), "c", backoff_id("d", 12)]
+    assert list(meas["point_id"]) == list(run["point_id"])
+    np.testing.assert_allclose(run["spark_deg_btdc"], [32.0, 33.0, 45.0, 48.0])
+    np.testing.assert_allclose(run["bench_backoff_deg"], [2 * BENCH_BACKOFF_DEG, 2 * BENCH_BACKOFF_DEG, 0.0, 12.0])
+    assert list(meas["status"]) == ["ok", "ok", "ok", "knock_abort"]
+    np.testing.assert_allclose(meas["brake_torque_nm"].to_numpy()[:3], [32.0, 33.0, 45.0])
+    # only the knocking points are re-run
+    assert bench.calls[0] == ["a", "b", "c", "d"] and all("c" not in c for c in bench.calls[1:])
+    # nothing knocks: the plan runs unchanged, once
+    bench = _StandInBench(lambda n: np.full_like(n, 90.0))
+    run, meas = measure_with_backoff(bench, plan, evaluate=None)
+    assert list(run["point_id"]) == list(plan["point_id"]) and len(bench.calls) == 1
+    assert (run["bench_backoff_deg"] == 0).all()
+
+
+def test_linearisation_select_rows():
+    from engine_model.gap.linear import BaseModel, Linearisation
+
+    pts = pd.DataFrame({"point_id": ["p0", "p1", "p2"], "speed_rpm": [6000.0, 8000.0, 10000.0]})
+    jac = np.arange(3 * 2 * 4, dtype=float).reshape(3, 2, 4)
+    lin = Linearisation(points=pts, outputs=("a", "b"), y_ref=np.arange(6.0).reshape(3, 2),
+                        columns=[("base", "x")] * 4, steps=np.ones(4), jac=jac, ok=np.array([True, False, True]),
+                        status=["", "bad", ""], theta={}, base=BaseModel())
+    sub = lin.select(["p2", "p0"])
+    assert list(sub.points["point_id"]) == ["p2", "p0"]
+    np.testing.assert_array_equal(sub.jac, jac[[2, 0]])
+    np.testing.assert_array_equal(sub.y_ref, lin.y_ref[[2, 0]])
+    assert list(sub.ok) == [True, True] and sub.status == ["", ""]
+    with pytest.raises(ValueError, match="'p9'"):
+        lin.select(["p0", "p9"])
+
+
+def test_spark_slope_needs_enough_scattered_points():
+    # sparks +-3.2 deg about the MBT prior (span 6.4 deg, std 3.2 deg) at varied speed and throttle:
+    # 8 points give std x sqrt(n) = 9.1 deg < 10 (slope not pinned), 16 points 12.8 deg (carried)
+    def table(n):
+        rng = np.random.default_rng(3)
+        sp = rng.uniform(6000, 12500, n)
+        th = rng.uniform(30, 100, n)
+        ds = np.where(np.arange(n) % 2 == 0, 3.2, -3.2)
+        return pd.DataFrame({"speed_rpm": sp, "throttle_pct": th, "lambda": 0.9,
+                             "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th)) + ds})
+    assert choose_base(table(8)).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
+    assert choose_base(table(16)).params == SPARK_BASE

@@ -22,9 +22,10 @@ Steps of :func:`diagnose`:
    base-corrected residual that the candidate's sensitivity pattern spans);
    a candidate is *claimed* only when its held-out improvement beats the
    (1 - alpha) quantile of the best improvement that pure noise produces on
-   the same design (Monte Carlo with the same matrices) AND it removes at
-   least half of the held-out gap above noise; otherwise the answer is
-   "no candidate in the library explains it".
+   the same design (Monte Carlo with the same matrices) AND either removes at
+   least half of the held-out gap above noise or leaves a held-out residual
+   no larger than pure noise leaves (its 99 % quantile); otherwise the answer
+   is "no candidate in the library explains it".
 """
 
 from __future__ import annotations
@@ -374,7 +375,7 @@ def _shape_label(row) -> str:
 def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[str] | None = None,
              uncertainty: dict | None = None, model_error: dict | None = MODEL_ERROR, k_folds: int = 5,
              alpha: float = 0.05, n_noise: int = 200, seed: int = 0, noise_cache: dict | None = None,
-             min_reduction_pct: float = 50.0, source: str = "bench") -> GapDiagnosis:
+             min_reduction_pct: float = 50.0, source: str = "bench", consistent_rule: bool = True) -> GapDiagnosis:
     """Diagnose the gap between a bench table and the linearised model.
 
     Parameters
@@ -405,6 +406,14 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         noise to be claimed as the explanation [%].  (An absolute test -- the remaining residual
         consistent with pure noise -- was tried first and claimed nothing on the 32-point benchmark:
         the base's own structural misfit keeps every remaining residual above pure noise.)
+    consistent_rule : bool
+        Also claim a noise-beating candidate whose held-out chi2 is at or below the 99 % quantile of the
+        base's held-out chi2 on pure noise, even if it removes less than ``min_reduction_pct`` of the gap
+        above noise.  Measured on the 32-point benchmark (tuning seeds 0-4): a 5 deg knock retard beat
+        the noise threshold in 3 of 5 trials, two of them removing only 28 % and 44 % of the gap "above
+        noise", whose excess is partly the base's structural misfit; with this rule it is named 3/5
+        instead of 1/5, while the out-of-library bump (held-out chi2 ~2x the quantile after its best
+        candidate) and the null case stay unclaimed.
 
     Returns
     -------
@@ -453,7 +462,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     nobs = r.size
 
     # ---- noise calibration (same design, pure noise)
-    key = (tuple(pidx), tuple(oidx), tuple(folds), tuple(cands), k_folds, seed, n_noise, alpha)
+    key = (tuple(lin.points["point_id"].astype(str)), tuple(pidx), tuple(oidx), tuple(folds), tuple(cands), k_folds,
+           seed, n_noise, alpha)
     if noise_cache is not None and key in noise_cache:
         thr, q_chi2, noise_best = noise_cache[key]
     else:
@@ -533,7 +543,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     reduction = float(np.clip(reduction, -999.0, 100.0))
 
     claimed = None
-    if best is not None and rank["heldout_improvement"].iloc[0] > thr and reduction >= min_reduction_pct:
+    # a candidate that beats noise is claimed when it removes most of the gap above noise, or when what it
+    # leaves held out is no more than pure noise leaves (99 % quantile): a small effect near the noise floor
+    # whose excess is partly the base's own misfit is still explained (measured: knock retard at 5 deg)
+    resid_ok = best_ho <= q_chi2
+    if best is not None and rank["heldout_improvement"].iloc[0] > thr and (reduction >= min_reduction_pct
+                                                                           or (consistent_rule and resid_ok)):
         claimed = best
     conf = float(rank["weight"].iloc[0]) if claimed else 0.0
 

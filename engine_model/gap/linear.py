@@ -219,6 +219,29 @@ class Linearisation:
         """Outputs (n, o) after parameter changes ``delta`` (p,) [param units] from the reference."""
         return self.y_ref + self.jac @ delta
 
+    def select(self, point_ids: Sequence[str]) -> "Linearisation":
+        """The linearisation restricted to ``point_ids`` (in that order).
+
+        The benchmark linearises the union of the plans its trials end up with (points the bench
+        backed off for knock differ per trial) once, then diagnoses each trial on its own rows.
+
+        Raises
+        ------
+        ValueError
+            A point id that is not in this linearisation.
+        """
+        ids = self.points["point_id"].astype(str).tolist()
+        pos = {p: i for i, p in enumerate(ids)}
+        missing = [str(p) for p in point_ids if str(p) not in pos]
+        if missing:
+            raise ValueError(f"Linearisation.select: point_id(s) {missing[:5]} were not linearised")
+        idx = np.array([pos[str(p)] for p in point_ids], dtype=int)
+        return Linearisation(points=self.points.iloc[idx].reset_index(drop=True), outputs=self.outputs,
+                             y_ref=self.y_ref[idx], columns=list(self.columns), steps=self.steps.copy(),
+                             jac=self.jac[idx], ok=self.ok[idx], status=[self.status[i] for i in idx],
+                             theta=dict(self.theta), base=self.base, eta_base=self.eta_base,
+                             n_simulations=self.n_simulations, neutral=self.neutral)
+
 
 def _check_plan(points: pd.DataFrame) -> pd.DataFrame:
     need = ("point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda")

@@ -179,6 +179,11 @@ def write_benchmark_report(result: dict, out) -> dict:
              "summary": write_parquet(result["summary"], folder / "gap_benchmark_summary.parquet")}
     if len(result.get("verification", [])):
         paths["verification"] = write_parquet(result["verification"], folder / "gap_benchmark_verification.parquet")
+    if result.get("plans"):
+        # the plan of every case as the bench ran it (knocking points backed off on the bench)
+        runs = pd.concat([p.assign(effect_withheld=k[0], magnitude=k[1]) for k, p in result["plans"].items()],
+                         ignore_index=True, sort=False)
+        paths["plans"] = write_parquet(runs, folder / "gap_benchmark_plans.parquet")
     plt = _plt()
     s = result["summary"]
     fig, ax = plt.subplots(figsize=(10, 4))
