@@ -125,7 +125,7 @@ class MapSettings:
     battery_v: float = 14.0
     min_bmep_bar: float = doe.MIN_BMEP_BAR
     ca50_target_deg_atdc: float = doe.CA50_TARGET_DEG_ATDC
-    knock_uncertainty_z: float = 0.0
+    knock_uncertainty_z: float = 1.0
 
     def __post_init__(self):
         def need(ok, name, rule):
