@@ -106,8 +106,11 @@ class MapSettings:
         on ``bdur_10_90_deg_std`` and ``wiebe_m_std``, errors independent), ``g``
         the spark retard that offsets a 1 deg earlier CA50 at equal knock index,
         measured per cell by one extra simulation (a faster burn raises the
-        knock index: docs/sections/knock_uncertainty.md).  0 (default) ignores
-        the uncertainty; models without ``*_std`` outputs get no retard.
+        knock index: docs/sections/knock_uncertainty.md).  Default 1 (one-sided
+        84 %): on the default pipeline's model it cut the cells where the truth
+        engine knocks at the table spark from 25 to 6 of 80 at a 10 % mean
+        torque cost; 1.64 removed them all at 25 % (measured, same section).
+        0 ignores the uncertainty; models without ``*_std`` outputs get none.
     """
 
     knock_margin: float = 0.15
