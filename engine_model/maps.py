@@ -232,7 +232,8 @@ class MapResult:
         spark evaluated; spark_max if no knock met), ``spark_raw_deg_btdc``,
         ``spark_deg_btdc`` (table), ``smoothing_shift_deg``,
         ``phasing_std_deg`` (model's 1-sigma CA50-offset error at the knock border),
-        ``knock_phasing_gain`` [deg spark / deg CA50], ``knock_uncertainty_retard_deg``
+        ``knock_phasing_gain`` [deg spark / deg CA50] (``knock_phasing_gain_measured``
+        False where the fallback 1 was used), ``knock_uncertainty_retard_deg``
         (retard of the raw spark for that uncertainty, ``MapSettings.knock_uncertainty_z``),
         ``spark_start_deg_btdc`` (retarded starting map), ``limited_by``
         (mbt / knock / retard / spark_max / infeasible), ``feasible``,
@@ -387,6 +388,7 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     unc = _uncertainty_retard(runner, ev, cells, st)
     for col in ("phasing_std_deg", "knock_phasing_gain"):
         cells[col] = unc[col].to_numpy(float)
+    cells["knock_phasing_gain_measured"] = unc["knock_phasing_gain_measured"].to_numpy(bool)
     feas = cells["feasible"].to_numpy()
     border_safe = np.maximum(lo, cells["spark_border_deg_btdc"].to_numpy(float)
                              - unc["knock_uncertainty_border_retard_deg"].to_numpy(float))

@@ -279,9 +279,10 @@ def _uncertainty_retard(runner: "_Runner", ev: pd.DataFrame, cells: pd.DataFrame
     a faster burn is the pessimistic side of the knock index, docs/sections/knock_uncertainty.md), the second
     from the search's own points around the border; retard = z * sigma * g [deg].  One batched evaluate call
     (stage ``u1``), only for the cells that need it.  Returns columns ``phasing_std_deg, knock_phasing_gain,
-    knock_uncertainty_border_retard_deg`` indexed like ``cells`` (0 / NaN where not applicable).
+    knock_phasing_gain_measured, knock_uncertainty_border_retard_deg`` indexed like ``cells`` (0 / NaN / False
+    where not applicable; gain not measured: the fallback ``_PHASING_GAIN_FALLBACK``).
     """
-    out = pd.DataFrame({"phasing_std_deg": np.nan, "knock_phasing_gain": np.nan,
+    out = pd.DataFrame({"phasing_std_deg": np.nan, "knock_phasing_gain": np.nan, "knock_phasing_gain_measured": False,
                         "knock_uncertainty_border_retard_deg": 0.0}, index=cells.index)
     z = float(st.knock_uncertainty_z)
     border = cells["spark_border_deg_btdc"].to_numpy(float)
@@ -324,6 +325,7 @@ def _uncertainty_retard(runner: "_Runner", ev: pd.DataFrame, cells: pd.DataFrame
         if math.isfinite(slope) and k0 > 0 and k_fast[j] > 0 and math.isfinite(k_fast[j]):
             # clipped: a knock index that falls with a faster burn means no retard; > 3 deg/deg is not physical here
             gain = float(np.clip(math.log(k_fast[j] / k0) / delta[go][j] / slope, 0.0, 3.0))
+            out.at[c, "knock_phasing_gain_measured"] = True
         out.at[c, "knock_phasing_gain"] = gain
         out.at[c, "knock_uncertainty_border_retard_deg"] = z * float(out.at[c, "phasing_std_deg"]) * gain
     return out

@@ -610,6 +610,7 @@ def test_knock_uncertainty_retard_is_z_sigma_gain_in_knock_cells_only():
         for t, n in ((100, 6000), (100, 10000)):        # knock-limited cells of the synthetic engine
             assert c.loc[(t, n), "limited_by"] == "knock"
             assert c.loc[(t, n), "knock_phasing_gain"] == pytest.approx(gain, rel=0.02)
+            assert c.loc[(t, n), "knock_phasing_gain_measured"]
             assert c.loc[(t, n), "knock_uncertainty_retard_deg"] == pytest.approx(1.64 * sigma * gain, rel=0.02)
             assert c.loc[(t, n), "spark_deg_btdc"] == pytest.approx(
                 base.loc[(t, n), "spark_deg_btdc"] - 1.64 * sigma * gain, abs=0.15)   # 0.1 deg ECU rounding
@@ -658,3 +659,19 @@ def test_faster_burn_raises_the_knock_index_of_the_cycle_model():
                          "wiebe_m": [3.0, 3.0, 2.0]})
     k = simulate(spec, plan, SOLVER)["knock_index"].to_numpy(float)
     assert np.all(np.isfinite(k)) and k[1] > 1.05 * k[0] and k[2] > 1.05 * k[0]
+
+
+def test_knock_uncertainty_gain_falls_back_to_one_when_the_extra_point_fails():
+    """A failed sensitivity point is flagged (gain_measured False) and the safe gain 1 is used, not no retard."""
+    def failing_extra(plan):
+        out = offset_engine(plan)
+        extra = plan["point_id"].astype(str).str.startswith("map-u1").to_numpy()
+        out.loc[extra, ["brake_torque_nm", "knock_index"]] = np.nan
+        return out
+    st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0, knock_uncertainty_z=1.0)
+    res = build_maps(default_spec(), StdModel(offset_std=2.0), grid=EcuGrid((50, 100), (2000, 6000, 10000)),
+                     evaluate=failing_extra, settings=st)
+    c = res.cells.set_index(["throttle_pct", "speed_rpm"])
+    for t, n in ((100, 6000), (100, 10000)):
+        assert not c.loc[(t, n), "knock_phasing_gain_measured"]
+        assert c.loc[(t, n), "knock_uncertainty_retard_deg"] == pytest.approx(2.0, rel=1e-6)
