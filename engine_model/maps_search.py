@@ -212,3 +212,120 @@ class _Runner:
 
     def evaluations(self) -> pd.DataFrame:
         return pd.concat(self.frames, ignore_index=True) if self.frames else pd.DataFrame()
+
+
+# --------------------------------------------------------------------------- knock safety against model uncertainty
+
+#: Finite-difference step of the CA50-offset sensitivity of the knock index [deg]: small against the offsets
+#: (20-70 deg), large against the cycle model's knock-index noise (a 2 deg earlier CA50 changes it by ~5-30 %).
+_PHASING_FD_DEG = 2.0
+#: Gain used when the sensitivity cannot be measured (extra point failed, knock slope not positive): a shift of
+#: the whole burn by 1 deg is then taken as worth 1 deg of spark (knock as a function of phasing alone); the
+#: measured gains on the default R6 map were 0.4-0.8 (docs/sections/knock_uncertainty.md), so this errs safe.
+_PHASING_GAIN_FALLBACK = 1.0
+
+
+def _phasing_std(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(bdur_10_90, m, CA50 offset, 1-sigma of the CA50 offset) per row [deg, -, deg, deg].
+
+    The std is the model's ``ca50_offset_deg_std`` if it predicts one (phasing models), else the delta method on
+    ``bdur_10_90_deg_std`` and ``wiebe_m_std`` with independent errors; 0 where the model gives no std at all.
+    """
+    q = pts[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]].reset_index(drop=True)
+    pred = model.predict(q)
+    b, m = _predict(model, pts)
+    ok = np.isfinite(b)
+    off = np.full(len(q), np.nan)
+    off[ok] = wiebe.burn_angles(0.0, b[ok], m[ok])["ca50_deg_atdc"]
+    sig = np.zeros(len(q))
+    if "ca50_offset_deg_std" in pred.columns:
+        sig = pd.to_numeric(pred["ca50_offset_deg_std"], errors="coerce").to_numpy(float).copy()
+    elif {"bdur_10_90_deg_std", "wiebe_m_std"} <= set(pred.columns):
+        sb = pd.to_numeric(pred["bdur_10_90_deg_std"], errors="coerce").to_numpy(float)
+        sm = pd.to_numeric(pred["wiebe_m_std"], errors="coerce").to_numpy(float)
+        h = 1e-4
+        d_m = np.full(len(q), np.nan)
+        d_m[ok] = (wiebe.burn_angles(0.0, b[ok], m[ok] + h)["ca50_deg_atdc"]
+                   - wiebe.burn_angles(0.0, b[ok], m[ok] - h)["ca50_deg_atdc"]) / (2 * h)
+        sig = np.hypot(off / b * sb, d_m * sm)     # offset is proportional to BDUR10-90 at fixed m
+    sig = np.where(ok & np.isfinite(sig), np.maximum(sig, 0.0), 0.0)
+    return b, m, off, sig
+
+
+def _knock_slope(grp: pd.DataFrame, border: float) -> float:
+    """d ln(knock index)/d spark [1/deg] at the border: the two evaluated points that bracket it, else a fit."""
+    g = grp[np.isfinite(grp["knock_index"]) & (grp["knock_index"] > 0)].sort_values("spark_deg_btdc")
+    g = g.drop_duplicates("spark_deg_btdc")
+    s, k = g["spark_deg_btdc"].to_numpy(float), np.log(g["knock_index"].to_numpy(float))
+    below, above = s <= border + 1e-6, s > border + 1e-6
+    if below.any() and above.any():
+        i, j = np.flatnonzero(below)[-1], np.flatnonzero(above)[0]
+        slope = (k[j] - k[i]) / (s[j] - s[i])
+        if slope > 1e-3:
+            return float(slope)
+    if s.size >= 2:
+        slope = np.polyfit(s, k, 1)[0]
+        if slope > 1e-3:
+            return float(slope)
+    return math.nan
+
+
+def _uncertainty_retard(runner: "_Runner", ev: pd.DataFrame, cells: pd.DataFrame, st: "MapSettings") -> pd.DataFrame:
+    """Per cell, the knock-border retard for the model's burn uncertainty (``MapSettings.knock_uncertainty_z``).
+
+    For each cell with a resolved knock border (``spark_border_deg_btdc`` below spark_max), at the border spark:
+    ``sigma`` = 1-sigma of the model's CA50 offset; ``g`` = (d ln K / d earlier CA50) / (d ln K / d spark), the
+    first from one extra simulation with the burn made ``_PHASING_FD_DEG`` faster (BDUR10-90 scaled, m kept:
+    a faster burn is the pessimistic side of the knock index, docs/sections/knock_uncertainty.md), the second
+    from the search's own points around the border; retard = z * sigma * g [deg].  One batched evaluate call
+    (stage ``u1``), only for the cells that need it.  Returns columns ``phasing_std_deg, knock_phasing_gain,
+    knock_phasing_gain_measured, knock_uncertainty_border_retard_deg`` indexed like ``cells`` (0 / NaN / False
+    where not applicable; gain not measured: the fallback ``_PHASING_GAIN_FALLBACK``).
+    """
+    out = pd.DataFrame({"phasing_std_deg": np.nan, "knock_phasing_gain": np.nan, "knock_phasing_gain_measured": False,
+                        "knock_uncertainty_border_retard_deg": 0.0}, index=cells.index)
+    z = float(st.knock_uncertainty_z)
+    border = cells["spark_border_deg_btdc"].to_numpy(float)
+    need = cells["feasible"].to_numpy(bool) & np.isfinite(border) & (border < st.spark_max_deg_btdc - 1e-6)
+    if z <= 0 or not need.any():
+        return out
+    idx = cells.index[need]
+    pts = cells.loc[idx, ["throttle_pct", "speed_rpm", "lambda"]].copy()
+    pts["spark_deg_btdc"] = border[need]
+    b, m, off, sig = _phasing_std(runner.model, pts)
+    out.loc[idx, "phasing_std_deg"] = sig
+    go = np.isfinite(off) & (sig > 0)
+    if not go.any():
+        return out
+    delta = np.minimum(_PHASING_FD_DEG, 0.5 * off)
+    plan = pts[go].copy()
+    plan.insert(0, "point_id", [f"map-u1-c{int(c):04d}" for c in plan.index])
+    plan["bdur_10_90_deg"] = (b * (off - delta) / off)[go]
+    plan["wiebe_m"] = m[go]
+    cols = ["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m"]
+    res = runner.evaluate(plan[cols].reset_index(drop=True))
+    runner.calls += 1
+    runner.points += len(plan)
+    if len(res) != len(plan):
+        raise ValueError(f"evaluate returned {len(res)} rows for a plan of {len(plan)} points")
+    k_fast = pd.to_numeric(res["knock_index"], errors="coerce").to_numpy(float)
+    rec = plan.assign(cell=plan.index.to_numpy(), stage="u1").reset_index(drop=True)
+    for col in _EVAL_KEEP:
+        rec[col] = res[col].to_numpy() if col in res.columns else np.nan
+    rec["status"] = [f"pessimistic burn (CA50 {d:g} deg earlier) for the knock-uncertainty retard; {s}"
+                     for d, s in zip(delta[go], rec["status"].astype(str))]
+    runner.frames.append(rec)
+    for j, c in enumerate(plan.index):
+        grp = ev[ev["cell"] == c]
+        s_b = float(plan.at[c, "spark_deg_btdc"])
+        at = grp[np.isfinite(grp["knock_index"]) & (np.abs(grp["spark_deg_btdc"] - s_b) < 1e-6)]
+        slope = _knock_slope(grp, s_b)
+        k0 = float(at["knock_index"].iloc[0]) if len(at) else math.nan
+        gain = _PHASING_GAIN_FALLBACK
+        if math.isfinite(slope) and k0 > 0 and k_fast[j] > 0 and math.isfinite(k_fast[j]):
+            # clipped: a knock index that falls with a faster burn means no retard; > 3 deg/deg is not physical here
+            gain = float(np.clip(math.log(k_fast[j] / k0) / delta[go][j] / slope, 0.0, 3.0))
+            out.at[c, "knock_phasing_gain_measured"] = True
+        out.at[c, "knock_phasing_gain"] = gain
+        out.at[c, "knock_uncertainty_border_retard_deg"] = z * float(out.at[c, "phasing_std_deg"]) * gain
+    return out

@@ -116,7 +116,8 @@ def cmd_maps(args) -> int:
     from .maps import run_maps
 
     settings = {k: v for k, v in (("knock_margin", args.knock_margin), ("safety_retard_deg", args.safety_retard),
-                                  ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v))
+                                  ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v),
+                                  ("knock_uncertainty_z", args.knock_uncertainty_z))
                 if v is not None}
     run_maps(args.model, args.out, spec=args.spec, throttle=args.throttle, speed=args.speed,
              lambda_table=args.lambda_table, settings=settings, grid=args.grid, step_deg=args.step_deg,
@@ -234,6 +235,8 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--safety-retard", type=float, default=None, help="retard from MBT [deg] (default 0)")
     mp.add_argument("--start-retard", type=float, default=None, help="starting-map retard [deg] (default 12)")
     mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")
+    mp.add_argument("--knock-uncertainty-z", type=float, default=None,
+                    help="retard the knock border by z sigmas of the model's CA50-offset uncertainty (default 0)")
     common(mp)
     dask(mp)
     mp.set_defaults(func=cmd_maps)

@@ -55,3 +55,14 @@ def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
     page = (out / "index.html").read_text()
     assert "(missing)" not in page and "maps/spark_advance.csv" in page
     assert "index:" in capsys.readouterr().out
+
+
+def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
+    """`--knock-uncertainty-z` is passed to MapSettings: a bad value is refused by name before any cluster starts."""
+    from engine_model.maps import PriorModel
+
+    model = PriorModel().save(tmp_path / "prior.json")
+    out = tmp_path / "maps"
+    assert main(["maps", "--model", str(model), "--out", str(out), "--knock-uncertainty-z", "-1"]) == 2
+    assert "MapSettings.knock_uncertainty_z = -1.0" in capsys.readouterr().err
+    assert not out.exists()

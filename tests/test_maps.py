@@ -410,7 +410,15 @@ def test_fitted_map_model_file_drives_the_search(tmp_path):
                      settings=MapSettings(spark_min_deg_btdc=20.0))
     ev = res.evaluations
     pred = model.predict(ev[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]])
-    np.testing.assert_allclose(ev["bdur_10_90_deg"], pred["bdur_10_90_deg"], rtol=1e-12)
+    # search and verification run the model's burn; the knock-uncertainty points (stage u1, default z > 0) run
+    # the model's burn made 2 deg faster in CA50 offset, same m
+    u1 = (ev["stage"] == "u1").to_numpy()
+    assert u1.any()
+    np.testing.assert_allclose(ev["bdur_10_90_deg"][~u1], pred["bdur_10_90_deg"][~u1], rtol=1e-12)
+    np.testing.assert_allclose(ev["wiebe_m"], pred["wiebe_m"], rtol=1e-12)
+    np.testing.assert_allclose(_offset(ev["bdur_10_90_deg"][u1].to_numpy(), ev["wiebe_m"][u1].to_numpy()),
+                               _offset(pred["bdur_10_90_deg"][u1].to_numpy(), pred["wiebe_m"][u1].to_numpy()) - 2.0,
+                               atol=1e-9)
     assert ev.groupby("cell")["bdur_10_90_deg"].nunique().min() > 1       # spark-dependent through the model
     assert res.model_name == "MapModel" and res.cells["feasible"].sum() >= 4
     other = spec.with_values({"geometry.compression_ratio": 12.0})
@@ -546,3 +554,124 @@ def test_fitted_global_model_map_against_the_truth_mbt_and_torque(fitted_map):
             assert abs(cell["spark_mbt_deg_btdc"] - (-b / (2 * a))) <= 2.0
         checked += 1
     assert checked >= 3
+
+
+# --------------------------------------------------------------------------- knock safety against model uncertainty
+
+KNOCK_PER_DEG_CA50 = 0.05   # synthetic d ln(knock)/d(earlier CA50) [1/deg]; d ln(knock)/d spark is 0.08 [1/deg]
+
+
+def _offset(b, m):
+    return wiebe.burn_angles(0.0, b, m)["ca50_deg_atdc"]
+
+
+def offset_engine(plan):
+    """synthetic_engine whose knock index also rises as the burn's CA50 offset falls below the prior's
+    (a faster burn): ln K gains 0.05 per deg of earlier CA50; at the prior's burn it is synthetic_engine."""
+    out = synthetic_engine(plan)
+    n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
+    b0, m0 = doe.combustion_estimate(n, t)
+    shift = _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
+                                                                      plan["wiebe_m"].to_numpy(float))
+    out["knock_index"] = out["knock_index"] * np.exp(KNOCK_PER_DEG_CA50 * shift)
+    return out
+
+
+class StdModel(PriorModel):
+    """The DOE prior with a stated 1-sigma uncertainty: of the CA50 offset directly, or of BDUR10-90 only."""
+
+    def __init__(self, offset_std=None, bdur_std=None):
+        super().__init__()
+        self.offset_std, self.bdur_std = offset_std, bdur_std
+
+    def predict(self, points):
+        out = super().predict(points)
+        if self.offset_std is not None:
+            out["ca50_offset_deg_std"] = self.offset_std
+        if self.bdur_std is not None:
+            out["bdur_10_90_deg_std"], out["wiebe_m_std"] = self.bdur_std, 0.0
+        return out
+
+
+def _offset_map(model, z):
+    st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0, knock_uncertainty_z=z)
+    res = build_maps(default_spec(), model, grid=EcuGrid((50, 100), (2000, 6000, 10000)), evaluate=offset_engine,
+                     settings=st)
+    return res.cells.set_index(["throttle_pct", "speed_rpm"]), res
+
+
+def test_knock_uncertainty_retard_is_z_sigma_gain_in_knock_cells_only():
+    base, _ = _offset_map(StdModel(offset_std=2.0), 0.0)
+    assert (base["knock_uncertainty_retard_deg"] == 0).all()
+    gain = KNOCK_PER_DEG_CA50 / 0.08          # spark retard that offsets 1 deg of earlier CA50 at equal knock
+    retards = []
+    for sigma in (1.0, 3.0):
+        c, res = _offset_map(StdModel(offset_std=sigma), 1.64)
+        for t, n in ((100, 6000), (100, 10000)):        # knock-limited cells of the synthetic engine
+            assert c.loc[(t, n), "limited_by"] == "knock"
+            assert c.loc[(t, n), "knock_phasing_gain"] == pytest.approx(gain, rel=0.02)
+            assert c.loc[(t, n), "knock_phasing_gain_measured"]
+            assert c.loc[(t, n), "knock_uncertainty_retard_deg"] == pytest.approx(1.64 * sigma * gain, rel=0.02)
+            assert c.loc[(t, n), "spark_deg_btdc"] == pytest.approx(
+                base.loc[(t, n), "spark_deg_btdc"] - 1.64 * sigma * gain, abs=0.15)   # 0.1 deg ECU rounding
+        retards.append(c.loc[(100, 6000), "knock_uncertainty_retard_deg"])
+        for n in (2000, 6000, 10000):                    # MBT far below the border: untouched
+            assert c.loc[(50, n), "limited_by"] == "mbt"
+            assert c.loc[(50, n), "knock_uncertainty_retard_deg"] == 0.0
+            assert c.loc[(50, n), "spark_deg_btdc"] == base.loc[(50, n), "spark_deg_btdc"]
+        # one extra batched evaluate call, one point per cell with a knock border, the burn 2 deg faster
+        u1 = res.evaluations[res.evaluations["stage"] == "u1"]
+        assert len(u1) == int((c["spark_border_deg_btdc"] < 70.0 - 1e-6)[c["feasible"]].sum()) >= 2
+        assert res.stats["knock_uncertainty"]["cells_retarded"] == 2
+    assert retards[1] > 2.5 * retards[0]
+
+
+def test_knock_uncertainty_zero_std_or_no_std_gives_no_retard():
+    base, _ = _offset_map(PriorModel(), 0.0)
+    for model in (StdModel(offset_std=0.0), PriorModel()):
+        c, res = _offset_map(model, 2.0)
+        assert (c["knock_uncertainty_retard_deg"] == 0).all()
+        np.testing.assert_array_equal(c["spark_deg_btdc"], base["spark_deg_btdc"])
+        assert not (res.evaluations["stage"] == "u1").any()      # nothing to measure: no extra simulation
+
+
+def test_knock_uncertainty_from_bdur_std_by_the_delta_method():
+    c, _ = _offset_map(StdModel(bdur_std=1.5), 1.0)
+    b, m = doe.combustion_estimate(10000.0, 100.0)
+    expect = float(_offset(b, m)) / float(b) * 1.5       # offset proportional to BDUR10-90 at fixed m
+    assert c.loc[(100, 10000), "phasing_std_deg"] == pytest.approx(expect, rel=1e-3)
+    assert c.loc[(100, 10000), "knock_uncertainty_retard_deg"] == pytest.approx(
+        expect * KNOCK_PER_DEG_CA50 / 0.08, rel=0.02)
+
+
+@pytest.mark.parametrize("bad", [-0.5, 4.5, float("nan"), "1.64", True])
+def test_knock_uncertainty_z_is_validated(bad):
+    with pytest.raises(ValueError, match=r"MapSettings\.knock_uncertainty_z"):
+        MapSettings(knock_uncertainty_z=bad)
+
+
+def test_faster_burn_raises_the_knock_index_of_the_cycle_model():
+    """The pessimistic side of the burn prediction for knock is the faster burn (shorter BDUR10-90 or smaller m,
+    so an earlier CA50 at the same spark): one WOT point, 3 simulations at a 1 deg step (enough for the sign)."""
+    spec = default_spec()
+    plan = pd.DataFrame({"point_id": ["nom", "fast_b", "fast_m"], "speed_rpm": 12000.0, "throttle_pct": 100.0,
+                         "spark_deg_btdc": 36.0, "lambda": 0.9, "bdur_10_90_deg": [26.0, 22.0, 26.0],
+                         "wiebe_m": [3.0, 3.0, 2.0]})
+    k = simulate(spec, plan, SOLVER)["knock_index"].to_numpy(float)
+    assert np.all(np.isfinite(k)) and k[1] > 1.05 * k[0] and k[2] > 1.05 * k[0]
+
+
+def test_knock_uncertainty_gain_falls_back_to_one_when_the_extra_point_fails():
+    """A failed sensitivity point is flagged (gain_measured False) and the safe gain 1 is used, not no retard."""
+    def failing_extra(plan):
+        out = offset_engine(plan)
+        extra = plan["point_id"].astype(str).str.startswith("map-u1").to_numpy()
+        out.loc[extra, ["brake_torque_nm", "knock_index"]] = np.nan
+        return out
+    st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0, knock_uncertainty_z=1.0)
+    res = build_maps(default_spec(), StdModel(offset_std=2.0), grid=EcuGrid((50, 100), (2000, 6000, 10000)),
+                     evaluate=failing_extra, settings=st)
+    c = res.cells.set_index(["throttle_pct", "speed_rpm"])
+    for t, n in ((100, 6000), (100, 10000)):
+        assert not c.loc[(t, n), "knock_phasing_gain_measured"]
+        assert c.loc[(t, n), "knock_uncertainty_retard_deg"] == pytest.approx(2.0, rel=1e-6)
