@@ -269,8 +269,9 @@ def build_parser() -> argparse.ArgumentParser:
     gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
     gb.add_argument("--seed-start", type=int, default=0,
                     help="first noise seed (default 0); e.g. 5 for fresh seeds after tuning on 0-4")
-    gb.add_argument("--design", choices=("sobol", "sweep"), default="sobol",
-                    help="benchmark DOE: 32 scattered points (default) or 8 operating points x 4-spark sweeps")
+    gb.add_argument("--design", choices=("sobol", "sweep", "discriminating"), default="sobol",
+                    help="benchmark DOE: 32 scattered points (default), 8 operating points x 4-spark sweeps, or "
+                         "32 points chosen from a candidate pool to tell the effects apart")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)
