@@ -220,11 +220,12 @@ def test_pair_distance_is_the_residual_of_a_regression_on_the_rival_and_base():
     assert d0[("A", "B")] < 1e-6 and d0[("B", "A")] < 1e-6     # 0 up to the 1e-9 relative ridge
 
 
-def test_discriminating_selection_finds_the_few_separating_points_and_beats_random_plans():
+@pytest.mark.parametrize("criterion", ["maximin", "error"])
+def test_discriminating_selection_finds_the_few_separating_points_and_beats_random_plans(criterion):
     from engine_model.gap.design import pair_distances, select_discriminating
 
     prob, special = _two_alike_effects()
-    idx, info = select_discriminating(prob, 8)
+    idx, info = select_discriminating(prob, 8, criterion=criterion)
     assert len(set(idx.tolist())) == 8
     assert set(special) <= set(idx.tolist())
     assert info["min_d2"] == pytest.approx(min(info["pairs"].values()))
@@ -234,6 +235,8 @@ def test_discriminating_selection_finds_the_few_separating_points_and_beats_rand
     assert info["min_d2"] > max(rand)
     with pytest.raises(ValueError, match="n_points = 61"):
         select_discriminating(prob, 61)
+    with pytest.raises(ValueError, match="criterion 'dopt' unknown"):
+        select_discriminating(prob, 8, criterion="dopt")
 
 
 def test_discrimination_plan_from_a_given_linearisation():

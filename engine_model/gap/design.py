@@ -39,7 +39,7 @@ from .effects import EFFECTS, get_effect
 from .linear import SWEEP_BASE, BaseModel, Linearisation, linearise
 
 __all__ = ["DesignProblem", "design_problem", "pair_distances", "select_discriminating", "candidate_pool",
-           "discrimination_plan", "DESIGN_OUTPUTS"]
+           "discrimination_plan", "DESIGN_OUTPUTS", "CRITERIA"]
 
 #: Readings the design counts on (the benchmark's bench: airflow, torque, exhaust T, fuel flow; BSFC is
 #: redundant with fuel flow and torque, as in :func:`engine_model.gap.diagnose.check_bench_outputs`).
@@ -131,23 +131,40 @@ def pair_distances(prob: DesignProblem, gram: np.ndarray, ridge: float = 1e-9) -
     return out
 
 
-def _score(prob: DesignProblem, gram: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(min d2, sum 1/d2) over the hypothesis pairs, per Gram matrix in ``gram`` (m, q, q)."""
+def _score(prob: DesignProblem, gram: np.ndarray, criterion: str = "maximin") -> tuple[np.ndarray, np.ndarray]:
+    """Two keys to maximise (lexicographically) per Gram matrix in ``gram`` (m, q, q).
+
+    ``"maximin"``: (min d2, -sum 1/d2).  ``"error"``: (-sum Phi(-d/2), min d2), the union bound of the
+    pairwise misnaming probabilities (Bayes error of two equiprobable Gaussian hypotheses a Mahalanobis
+    distance d apart is Phi(-d/2)).
+    """
+    from scipy.special import ndtr
+
     d = np.stack(list(pair_distances(prob, gram).values()), axis=1)      # (m, pairs)
-    return d.min(axis=1), (1.0 / np.maximum(d, 1e-12)).sum(axis=1)
+    if criterion == "maximin":
+        return d.min(axis=1), -(1.0 / np.maximum(d, 1e-12)).sum(axis=1)
+    if criterion == "error":
+        return -ndtr(-0.5 * np.sqrt(d)).sum(axis=1), d.min(axis=1)
+    raise ValueError(f"design criterion {criterion!r} unknown; valid: {list(CRITERIA)}")
 
 
-def _better(mn, inv, best_mn, best_inv, rel=1e-9) -> np.ndarray:
-    return (mn > best_mn * (1 + rel) + 1e-15) | ((mn >= best_mn * (1 - rel)) & (inv < best_inv * (1 - rel)))
+#: Selection criteria of :func:`select_discriminating`.
+CRITERIA = ("maximin", "error")
+
+
+def _better(k1, k2, b1, b2, rel=1e-9) -> np.ndarray:
+    tol1 = rel * abs(b1) + 1e-15
+    return (k1 > b1 + tol1) | ((k1 >= b1 - tol1) & (k2 > b2 + rel * abs(b2) + 1e-15))
 
 
 def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[int] | None = None,
-                          exchange_passes: int = 3) -> tuple[np.ndarray, dict]:
+                          exchange_passes: int = 3, criterion: str = "maximin") -> tuple[np.ndarray, dict]:
     """Indices of ``n_points`` distinct candidate points maximising the smallest ``d2(i | j)``.
 
     Greedy forward selection (from ``start``, default empty), then up to ``exchange_passes`` passes in which
     every chosen point is swapped for the unchosen candidate that improves the criterion most, if any.
-    Ties in the minimum are broken by the smaller sum of ``1/d2``.
+    ``criterion`` (:data:`CRITERIA`): ``"maximin"`` maximises the smallest ``d2`` (ties broken by the smaller
+    sum of ``1/d2``); ``"error"`` minimises the sum over pairs of ``Phi(-sqrt(d2)/2)``.
 
     Returns
     -------
@@ -165,8 +182,8 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
     gsum = prob.gram[chosen].sum(axis=0) if chosen else np.zeros(prob.gram.shape[1:])
     while len(chosen) < n_points:
         free = np.setdiff1d(np.arange(prob.n), chosen)
-        mn, inv = _score(prob, gsum[None] + prob.gram[free])
-        order = np.lexsort((inv, -mn))          # largest min, then smallest sum 1/d2
+        k1, k2 = _score(prob, gsum[None] + prob.gram[free], criterion)
+        order = np.lexsort((-k2, -k1))          # largest first key, then largest second key
         k = int(free[order[0]])
         chosen.append(k)
         gsum = gsum + prob.gram[k]
@@ -174,14 +191,14 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
     for _ in range(max(0, exchange_passes)):
         moved = False
         for pos in range(len(chosen)):
-            cur_mn, cur_inv = _score(prob, gsum[None])
+            c1, c2 = _score(prob, gsum[None], criterion)
             free = np.setdiff1d(np.arange(prob.n), chosen)
             g_wo = gsum - prob.gram[chosen[pos]]
-            mn, inv = _score(prob, g_wo[None] + prob.gram[free])
-            good = _better(mn, inv, cur_mn[0], cur_inv[0])
+            k1, k2 = _score(prob, g_wo[None] + prob.gram[free], criterion)
+            good = _better(k1, k2, c1[0], c2[0])
             if good.any():
                 cand = np.flatnonzero(good)
-                best = cand[np.lexsort((inv[cand], -mn[cand]))[0]]
+                best = cand[np.lexsort((-k2[cand], -k1[cand]))[0]]
                 k = int(free[best])
                 gsum = g_wo + prob.gram[k]
                 chosen[pos] = k
@@ -191,8 +208,11 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
             break
     pairs = pair_distances(prob, gsum)
     closest = min(pairs, key=pairs.get)
+    from scipy.special import ndtr
+
+    err = float(sum(ndtr(-0.5 * np.sqrt(v)) for v in pairs.values()))
     return np.array(chosen, dtype=int), {"min_d2": float(pairs[closest]), "pairs": pairs, "closest": closest,
-                                         "swaps": swaps}
+                                         "swaps": swaps, "error_bound": err, "criterion": criterion}
 
 
 def candidate_pool(n: int = 160, seed: int = 0, spec: EngineSpec | None = None, evaluate: Callable | None = None,
@@ -221,7 +241,7 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
                         candidates: pd.DataFrame | None = None, n_candidates: int = 160, seed: int = 0,
                         effects: Sequence[str] | None = None, base: BaseModel = BaseModel(params=SWEEP_BASE),
                         candidate_lin: Linearisation | None = None,
-                        outputs: Sequence[str] = DESIGN_OUTPUTS) -> tuple[pd.DataFrame, dict]:
+                        outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "maximin") -> tuple[pd.DataFrame, dict]:
     """Propose ``n_points`` bench points that tell the library's effects apart (before any bench run).
 
     Parameters
@@ -262,7 +282,7 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
     if ok.size < n_points:
         raise ValueError(f"discrimination_plan: only {ok.size} of {len(pool)} candidates converged; need {n_points}")
     prob = design_problem(lin.select(list(lin.points["point_id"].iloc[ok])), outputs, names)
-    idx, info = select_discriminating(prob, n_points)
+    idx, info = select_discriminating(prob, n_points, criterion=criterion)
     plan = pool.iloc[ok[idx]].reset_index(drop=True)
     plan["design"] = "discriminating"
     info.update({"pool": pool, "linearisation": lin, "simulations": lin.n_simulations})
