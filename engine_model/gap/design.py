@@ -20,9 +20,13 @@ present is used, so this is a product feature: plan the bench session before it 
 
 Selection (:func:`select_discriminating`) is a greedy forward pass followed by exchange passes
 (Fedorov-style) on the per-point Gram matrices of the whitened columns, which add over points, so each
-candidate's criterion is a batch of small solves.  The objective is lexicographic: the smallest
-``d2`` over the hypotheses' ordered pairs first, then the sum of ``1 / d2`` (a smooth surrogate of the
-minimum that also lifts the next-closest pairs).
+candidate's criterion is a batch of small solves.  Default objective (``"error"``): the sum over the
+ordered pairs of ``Phi(-d/2)``, the Bayes error of telling two equiprobable Gaussian hypotheses a
+Mahalanobis distance ``d`` apart, i.e. a union bound on the probability of naming the wrong one.  The
+alternative ``"maximin"`` (largest smallest ``d2``) was measured worse by its own yardstick: on the
+benchmark's 151 converged pool points the greedy+exchange maximin plan reached min d2 = 19.7, the
+error-bound plan 21.4 (and a bound of 0.027 against 0.050); a 32-point Sobol'-like subset of the pool
+has min d2 = 9.8 (blow-by vs transmission efficiency in both).
 """
 
 from __future__ import annotations
@@ -158,7 +162,7 @@ def _better(k1, k2, b1, b2, rel=1e-9) -> np.ndarray:
 
 
 def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[int] | None = None,
-                          exchange_passes: int = 3, criterion: str = "maximin") -> tuple[np.ndarray, dict]:
+                          exchange_passes: int = 3, criterion: str = "error") -> tuple[np.ndarray, dict]:
     """Indices of ``n_points`` distinct candidate points maximising the smallest ``d2(i | j)``.
 
     Greedy forward selection (from ``start``, default empty), then up to ``exchange_passes`` passes in which
@@ -241,7 +245,7 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
                         candidates: pd.DataFrame | None = None, n_candidates: int = 160, seed: int = 0,
                         effects: Sequence[str] | None = None, base: BaseModel = BaseModel(params=SWEEP_BASE),
                         candidate_lin: Linearisation | None = None,
-                        outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "maximin") -> tuple[pd.DataFrame, dict]:
+                        outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "error") -> tuple[pd.DataFrame, dict]:
     """Propose ``n_points`` bench points that tell the library's effects apart (before any bench run).
 
     Parameters
