@@ -88,11 +88,16 @@ class DesignProblem:
 
 
 def design_problem(lin: Linearisation, outputs: Sequence[str] = DESIGN_OUTPUTS, effects: Sequence[str] | None = None,
-                   uncertainty: dict | None = None, model_error: dict | None = MODEL_ERROR) -> DesignProblem:
+                   uncertainty: dict | None = None, model_error: dict | None = MODEL_ERROR,
+                   burn_scatter_deg: float = 0.0) -> DesignProblem:
     """Whitened blocks of a :class:`~engine_model.gap.linear.Linearisation` (points that are not ok are zeroed).
 
     Sigma per reading as in the diagnosis (measurement + structural model error), evaluated at the
-    model's own reference outputs.
+    model's own reference outputs.  ``burn_scatter_deg`` > 0 adds, per point, a correlated error along
+    the point's BDUR10-90 sensitivity (a burn that deviates from the smooth base law at that point, which
+    moves torque and exhaust T together; needs the base column ``bdur_offset_deg``): the covariance per
+    point becomes ``I + tau^2 u u^T`` in sigma units and the blocks are whitened by its Cholesky factor,
+    so the design does not count on contrasts that such a burn deviation can mimic.
     """
     unc = dict(UNCERTAINTY)
     unc.update(uncertainty or {})
@@ -101,6 +106,15 @@ def design_problem(lin: Linearisation, outputs: Sequence[str] = DESIGN_OUTPUTS, 
     sig = np.column_stack([sigma_of(c, lin.y_ref[:, k], unc, model_error) for c, k in zip(outs, oi)])
     blocks = lin.jac[:, oi, :] / sig[:, :, None] * lin.steps[None, None, :]
     blocks = np.where(np.isfinite(blocks) & lin.ok[:, None, None], blocks, 0.0)
+    if burn_scatter_deg > 0:
+        j = [k for k, c in enumerate(lin.columns) if c == ("base", "bdur_offset_deg")]
+        if not j:
+            raise ValueError("design_problem: burn_scatter_deg needs the base column bdur_offset_deg")
+        u = np.where(lin.ok[:, None], lin.jac[:, oi, j[0]] / sig, 0.0) * burn_scatter_deg     # (n, o) sigma units
+        u = np.where(np.isfinite(u), u, 0.0)
+        cov = np.eye(len(oi))[None] + np.einsum("no,np->nop", u, u)
+        chol = np.linalg.cholesky(cov)
+        blocks = np.linalg.solve(chol, blocks)
     names = lin.effect_names() if effects is None else [get_effect(e).name for e in effects]
     return DesignProblem(blocks, lin.column_index("base"), {e: lin.column_index(e) for e in names})
 
@@ -245,7 +259,8 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
                         candidates: pd.DataFrame | None = None, n_candidates: int = 160, seed: int = 0,
                         effects: Sequence[str] | None = None, base: BaseModel = BaseModel(params=SWEEP_BASE),
                         candidate_lin: Linearisation | None = None,
-                        outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "error") -> tuple[pd.DataFrame, dict]:
+                        outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "error",
+                        burn_scatter_deg: float = 0.0) -> tuple[pd.DataFrame, dict]:
     """Propose ``n_points`` bench points that tell the library's effects apart (before any bench run).
 
     Parameters
@@ -285,7 +300,8 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
     ok = np.flatnonzero(lin.ok)
     if ok.size < n_points:
         raise ValueError(f"discrimination_plan: only {ok.size} of {len(pool)} candidates converged; need {n_points}")
-    prob = design_problem(lin.select(list(lin.points["point_id"].iloc[ok])), outputs, names)
+    prob = design_problem(lin.select(list(lin.points["point_id"].iloc[ok])), outputs, names,
+                          burn_scatter_deg=burn_scatter_deg)
     idx, info = select_discriminating(prob, n_points, criterion=criterion)
     plan = pool.iloc[ok[idx]].reset_index(drop=True)
     plan["design"] = "discriminating"
