@@ -266,3 +266,33 @@ def test_discrimination_plan_from_a_given_linearisation():
     assert len(plan) == 5 and "c4" in set(plan["point_id"]) and "c15" not in set(plan["point_id"])
     assert (plan["design"] == "discriminating").all()
     assert info["closest"][0] in ("transmission_efficiency", "blowby")
+
+
+def test_burn_scatter_discounts_contrasts_a_burn_deviation_can_mimic():
+    """A torque-vs-exhaust-T contrast along a point's BDUR10-90 sensitivity counts less with burn scatter,
+    one orthogonal to it (airflow) does not change."""
+    from engine_model.gap.design import design_problem, pair_distances
+    from engine_model.gap.linear import BaseModel, Linearisation
+
+    n = 6
+    pts = pd.DataFrame({"point_id": [f"c{i}" for i in range(n)], "speed_rpm": 9000.0, "throttle_pct": 100.0,
+                        "spark_deg_btdc": 40.0, "lambda": 0.9})
+    outs = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k", "fuel_mass_flow_kg_h")
+    y_ref = np.tile([150.0, 40.0, 1100.0, 15.0], (n, 1))
+    jac = np.zeros((n, 4, 3))
+    jac[:, 1, 0], jac[:, 2, 0] = -0.2, 10.0             # base BDUR10-90: torque down, exhaust T up (per deg)
+    jac[:, 1, 1] = -0.4                                 # effect A: torque only
+    jac[:, 1, 2] = -0.4                                 # effect B: torque ...
+    jac[0, 2, 2] = 250.0                                # ... and, at point 0, exhaust T along the burn direction
+    lin = Linearisation(points=pts, outputs=outs, y_ref=y_ref, columns=[("base", "bdur_offset_deg"),
+                        ("transmission_efficiency", "eta"), ("blowby", "fraction_at_6000")],
+                        steps=np.array([2.0, -0.04, 0.02]), jac=jac, ok=np.ones(n, bool), status=[""] * n,
+                        theta={}, base=BaseModel(params=("bdur_offset_deg",)))
+    d = {t: pair_distances(p, p.gram.sum(axis=0)) for t, p in
+         ((t, design_problem(lin, burn_scatter_deg=t)) for t in (0.0, 0.5))}
+    assert d[0.5][("blowby", "transmission_efficiency")] < 0.8 * d[0.0][("blowby", "transmission_efficiency")]
+    jac[0, 2, 2], jac[0, 0, 2] = 0.0, 3.0               # the contrast on airflow instead: unaffected
+    d2 = {t: pair_distances(p, p.gram.sum(axis=0)) for t, p in
+          ((t, design_problem(lin, burn_scatter_deg=t)) for t in (0.0, 0.5))}
+    assert d2[0.5][("blowby", "transmission_efficiency")] == pytest.approx(
+        d2[0.0][("blowby", "transmission_efficiency")], rel=0.02)
