@@ -18,3 +18,15 @@ def test_gap_bench_missing_outputs(tmp_path, capsys):
 def test_gap_bench_file_not_found(tmp_path, capsys):
     assert main(["gap", "--bench", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "o")]) == 2
     assert "bench file not found" in capsys.readouterr().err
+
+
+def test_gap_benchmark_design_option():
+    """`--design discriminating` reaches the benchmark; an unknown design is refused by the parser."""
+    import pytest
+
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-benchmark", "--out", "x", "--design", "discriminating"])
+    assert args.design == "discriminating"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["gap-benchmark", "--out", "x", "--design", "dopt"])
