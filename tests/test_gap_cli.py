@@ -30,3 +30,14 @@ def test_gap_benchmark_design_option():
     assert args.design == "discriminating"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["gap-benchmark", "--out", "x", "--design", "dopt"])
+
+
+def test_gap_plan_options_and_bad_size(tmp_path, capsys):
+    """`mbc gap-plan` parses its options and refuses a plan of fewer than 2 points before any simulation."""
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-plan", "--out", "p.csv", "--points", "24", "--candidates", "100"])
+    assert (args.points, args.candidates) == (24, 100)
+    assert main(["gap-plan", "--out", str(tmp_path / "p.csv"), "--points", "1"]) == 2
+    assert "--points 1" in capsys.readouterr().err
+    assert not (tmp_path / "p.csv").exists()
