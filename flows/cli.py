@@ -9,6 +9,7 @@
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
     mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks)
     mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
+    mbc gap-plan       propose bench points that tell the gap library's effects apart
 
 It lives in ``flows`` because it drives Prefect and Dask; ``engine_model``
 stays free of both.
@@ -165,6 +166,27 @@ def cmd_gap_benchmark(args) -> int:
     return 0
 
 
+def cmd_gap_plan(args) -> int:
+    """Propose the bench points that tell the library's effects apart (base model only, in-process)."""
+    from engine_model.gap.benchmark import BENCH_SOLVER
+    from engine_model import load_spec
+    from engine_model.gap.design import discrimination_plan
+    from engine_model.io import write_csv
+    from engine_model.simulate import simulate
+
+    if args.points < 2:
+        raise ValueError(f"--points {args.points}: need at least 2 bench points")
+    eng = load_spec(args.spec)
+    plan, info = discrimination_plan(args.points, eng, lambda p: simulate(eng, p, BENCH_SOLVER),
+                                     n_candidates=args.candidates)
+    path = write_csv(plan, args.out)
+    i, j = info["closest"]
+    print(f"{len(plan)} points -> {path}; closest hypotheses: {i} vs {j or 'no effect'} "
+          f"(d2 = {info['min_d2']:.1f} in noise units), misnaming bound {info['error_bound']:.3f}; "
+          f"{info['simulations']} linearisation simulations + {len(info['pool']) * 5} knock checks")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbc", description="Model-based calibration of a restricted race engine")
     p.add_argument("--version", action="version", version=f"mbc {__version__}")
@@ -269,12 +291,22 @@ def build_parser() -> argparse.ArgumentParser:
     gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
     gb.add_argument("--seed-start", type=int, default=0,
                     help="first noise seed (default 0); e.g. 5 for fresh seeds after tuning on 0-4")
-    gb.add_argument("--design", choices=("sobol", "sweep"), default="sobol",
-                    help="benchmark DOE: 32 scattered points (default) or 8 operating points x 4-spark sweeps")
+    gb.add_argument("--design", choices=("sobol", "sweep", "discriminating"), default="sobol",
+                    help="benchmark DOE: 32 scattered points (default), 8 operating points x 4-spark sweeps, or "
+                         "32 points chosen from a candidate pool to tell the effects apart")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)
     gb.set_defaults(func=cmd_gap_benchmark)
+
+    gpl = sub.add_parser("gap-plan", help="propose bench points on which the gap library's effects differ most "
+                                          "(model-discrimination design) -> CSV plan")
+    gpl.add_argument("--out", required=True, help="plan CSV to write")
+    gpl.add_argument("--points", type=int, default=32, help="bench points (default 32)")
+    gpl.add_argument("--candidates", type=int, default=160,
+                     help="candidate pool size (default 160; ~22 simulations each, in-process)")
+    gpl.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
+    gpl.set_defaults(func=cmd_gap_plan)
     return p
 
 

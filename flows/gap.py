@@ -88,7 +88,7 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
     """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report).
 
     Noise seeds ``seed_start .. seed_start + seeds - 1`` (fresh seeds check rules chosen on earlier ones);
-    ``design`` 'sobol' (default) or 'sweep' (see ``engine_model.gap.benchmark.benchmark_plan``).
+    ``design`` 'sobol' (default), 'sweep' or 'discriminating' (see ``engine_model.gap.benchmark.benchmark_plan``).
     """
     from engine_model.gap.benchmark import BENCH_SOLVER, run_benchmark
     from engine_model.gap.report import write_benchmark_report

@@ -18,3 +18,26 @@ def test_gap_bench_missing_outputs(tmp_path, capsys):
 def test_gap_bench_file_not_found(tmp_path, capsys):
     assert main(["gap", "--bench", str(tmp_path / "nope.csv"), "--out", str(tmp_path / "o")]) == 2
     assert "bench file not found" in capsys.readouterr().err
+
+
+def test_gap_benchmark_design_option():
+    """`--design discriminating` reaches the benchmark; an unknown design is refused by the parser."""
+    import pytest
+
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-benchmark", "--out", "x", "--design", "discriminating"])
+    assert args.design == "discriminating"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["gap-benchmark", "--out", "x", "--design", "dopt"])
+
+
+def test_gap_plan_options_and_bad_size(tmp_path, capsys):
+    """`mbc gap-plan` parses its options and refuses a plan of fewer than 2 points before any simulation."""
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-plan", "--out", "p.csv", "--points", "24", "--candidates", "100"])
+    assert (args.points, args.candidates) == (24, 100)
+    assert main(["gap-plan", "--out", str(tmp_path / "p.csv"), "--points", "1"]) == 2
+    assert "--points 1" in capsys.readouterr().err
+    assert not (tmp_path / "p.csv").exists()

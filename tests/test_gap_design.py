@@ -180,3 +180,119 @@ def test_spark_slope_needs_enough_scattered_points():
                              "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th)) + ds})
     assert choose_base(table(8)).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
     assert choose_base(table(16)).params == SPARK_BASE
+
+
+# --------------------------------------------------------------------------- model-discrimination design
+
+def _two_alike_effects(n=60, special=(7, 23, 41), seed=3):
+    """Synthetic whitened blocks: base column (a level on output 0), effects A and B with the SAME
+    signature everywhere except at ``special`` points, where B moves output 1 instead of output 0."""
+    from engine_model.gap.design import DesignProblem
+
+    rng = np.random.default_rng(seed)
+    blocks = np.zeros((n, 2, 3))                  # columns: base, A, B
+    blocks[:, 0, 0] = 1.0
+    g = rng.uniform(0.5, 1.5, n)
+    blocks[:, 0, 1] = g
+    blocks[:, 1, 1] = 3.0 * g                     # both stand far out of noise (output 1 has no base term)
+    blocks[:, 0, 2] = g
+    blocks[:, 1, 2] = 3.0 * g
+    for k in special:                             # only here B differs from A, by about 1 sigma
+        blocks[k, 0, 2] = g[k] - 0.7
+        blocks[k, 1, 2] = 3.0 * g[k] + 0.7
+    return DesignProblem(blocks, [0], {"A": [1], "B": [2]}), list(special)
+
+
+def test_pair_distance_is_the_residual_of_a_regression_on_the_rival_and_base():
+    from engine_model.gap.design import pair_distances
+
+    prob, special = _two_alike_effects()
+    idx = np.array([0, 3, 7, 10, 23, 30])
+    x = prob.blocks[idx].reshape(-1, 3)
+    d = pair_distances(prob, prob.gram[idx].sum(axis=0))
+    for (i, j), d2 in d.items():
+        s = x[:, prob.effect_cols[i][0]]
+        m = x[:, [0] + ([] if j is None else prob.effect_cols[j])]
+        res = s - m @ np.linalg.lstsq(m, s, rcond=None)[0]
+        assert d2 == pytest.approx(float(res @ res), rel=1e-6, abs=1e-9)
+    # without the special points A and B are indistinguishable
+    d0 = pair_distances(prob, prob.gram[[0, 3, 10, 30]].sum(axis=0))
+    assert d0[("A", "B")] < 1e-6 and d0[("B", "A")] < 1e-6     # 0 up to the 1e-9 relative ridge
+
+
+@pytest.mark.parametrize("criterion", ["maximin", "error"])
+def test_discriminating_selection_finds_the_few_separating_points_and_beats_random_plans(criterion):
+    from engine_model.gap.design import pair_distances, select_discriminating
+
+    prob, special = _two_alike_effects()
+    idx, info = select_discriminating(prob, 8, criterion=criterion)
+    assert len(set(idx.tolist())) == 8
+    assert set(special) <= set(idx.tolist())
+    assert info["min_d2"] == pytest.approx(min(info["pairs"].values()))
+    rng = np.random.default_rng(0)
+    rand = [min(pair_distances(prob, prob.gram[rng.choice(prob.n, 8, replace=False)].sum(axis=0)).values())
+            for _ in range(300)]
+    assert info["min_d2"] > max(rand)
+    with pytest.raises(ValueError, match="n_points = 61"):
+        select_discriminating(prob, 61)
+    with pytest.raises(ValueError, match="criterion 'dopt' unknown"):
+        select_discriminating(prob, 8, criterion="dopt")
+
+
+def test_discrimination_plan_from_a_given_linearisation():
+    """Plumbing: the whitening, the non-converged candidates skipped, the pool rows returned."""
+    from engine_model.gap.design import discrimination_plan
+    from engine_model.gap.linear import BaseModel, Linearisation
+
+    n = 20
+    rng = np.random.default_rng(1)
+    pool = pd.DataFrame({"point_id": [f"c{i}" for i in range(n)], "speed_rpm": np.linspace(6000, 12000, n),
+                         "throttle_pct": 100.0, "spark_deg_btdc": 40.0, "lambda": 0.9})
+    outs = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k", "fuel_mass_flow_kg_h")
+    y_ref = np.column_stack([np.full(n, 150.0), np.full(n, 40.0), np.full(n, 1100.0), np.full(n, 15.0)])
+    jac = np.zeros((n, 4, 3))
+    jac[:, 1, 0] = 1.0                                  # base: torque level
+    jac[:, 1, 1] = -0.4 * rng.uniform(0.8, 1.2, n)      # transmission_efficiency: torque only
+    jac[:, 1, 2] = -0.4 * rng.uniform(0.8, 1.2, n)      # blowby: torque ...
+    jac[[4, 15], 2, 2] = -25.0                          # ... and exhaust T at two points only
+    ok = np.ones(n, bool)
+    ok[15] = False                                      # one of them did not converge
+    lin = Linearisation(points=pool, outputs=outs, y_ref=y_ref, columns=[("base", "bdur_offset_deg"),
+                        ("transmission_efficiency", "eta"), ("blowby", "fraction_at_6000")],
+                        steps=np.array([2.0, -0.04, 0.02]), jac=jac, ok=ok, status=[""] * n, theta={},
+                        base=BaseModel(params=("bdur_offset_deg",)))
+    plan, info = discrimination_plan(5, candidates=pool, candidate_lin=lin,
+                                     effects=["transmission_efficiency", "blowby"], evaluate=lambda p: None)
+    assert len(plan) == 5 and "c4" in set(plan["point_id"]) and "c15" not in set(plan["point_id"])
+    assert (plan["design"] == "discriminating").all()
+    assert info["closest"][0] in ("transmission_efficiency", "blowby")
+
+
+def test_burn_scatter_discounts_contrasts_a_burn_deviation_can_mimic():
+    """A torque-vs-exhaust-T contrast along a point's BDUR10-90 sensitivity counts less with burn scatter,
+    one orthogonal to it (airflow) does not change."""
+    from engine_model.gap.design import design_problem, pair_distances
+    from engine_model.gap.linear import BaseModel, Linearisation
+
+    n = 6
+    pts = pd.DataFrame({"point_id": [f"c{i}" for i in range(n)], "speed_rpm": 9000.0, "throttle_pct": 100.0,
+                        "spark_deg_btdc": 40.0, "lambda": 0.9})
+    outs = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k", "fuel_mass_flow_kg_h")
+    y_ref = np.tile([150.0, 40.0, 1100.0, 15.0], (n, 1))
+    jac = np.zeros((n, 4, 3))
+    jac[:, 1, 0], jac[:, 2, 0] = -0.2, 10.0             # base BDUR10-90: torque down, exhaust T up (per deg)
+    jac[:, 1, 1] = -0.4                                 # effect A: torque only
+    jac[:, 1, 2] = -0.4                                 # effect B: torque ...
+    jac[0, 2, 2] = 250.0                                # ... and, at point 0, exhaust T along the burn direction
+    lin = Linearisation(points=pts, outputs=outs, y_ref=y_ref, columns=[("base", "bdur_offset_deg"),
+                        ("transmission_efficiency", "eta"), ("blowby", "fraction_at_6000")],
+                        steps=np.array([2.0, -0.04, 0.02]), jac=jac, ok=np.ones(n, bool), status=[""] * n,
+                        theta={}, base=BaseModel(params=("bdur_offset_deg",)))
+    d = {t: pair_distances(p, p.gram.sum(axis=0)) for t, p in
+         ((t, design_problem(lin, burn_scatter_deg=t)) for t in (0.0, 0.5))}
+    assert d[0.5][("blowby", "transmission_efficiency")] < 0.8 * d[0.0][("blowby", "transmission_efficiency")]
+    jac[0, 2, 2], jac[0, 0, 2] = 0.0, 3.0               # the contrast on airflow instead: unaffected
+    d2 = {t: pair_distances(p, p.gram.sum(axis=0)) for t, p in
+          ((t, design_problem(lin, burn_scatter_deg=t)) for t in (0.0, 0.5))}
+    assert d2[0.5][("blowby", "transmission_efficiency")] == pytest.approx(
+        d2[0.0][("blowby", "transmission_efficiency")], rel=0.02)
