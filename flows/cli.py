@@ -258,7 +258,7 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--start-retard", type=float, default=None, help="starting-map retard [deg] (default 12)")
     mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")
     mp.add_argument("--knock-uncertainty-z", type=float, default=None,
-                    help="retard the knock border by z sigmas of the model's CA50-offset uncertainty (default 0)")
+                    help="retard the knock border by z sigmas of the model's CA50-offset uncertainty (default 1; 0 turns it off)")
     common(mp)
     dask(mp)
     mp.set_defaults(func=cmd_maps)
