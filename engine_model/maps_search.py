@@ -16,12 +16,18 @@ import numpy as np
 import pandas as pd
 
 from . import doe, wiebe
+from .mapmodel import ca50_offset_deg
 
 if TYPE_CHECKING:
     from .maps import MapSettings
 
 def _predict(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """(bdur_10_90, m) per row; NaN where the model's answer is missing or unphysical."""
+    return _predict_frame(model, pts)[1:]
+
+
+def _predict_frame(model, pts: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray, np.ndarray]:
+    """The model's whole prediction frame (stds included, if any) and the checked (bdur_10_90, m) of :func:`_predict`."""
     pred = model.predict(pts[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]].reset_index(drop=True))
     if len(pred) != len(pts) or not {"bdur_10_90_deg", "wiebe_m"} <= set(pred.columns):
         raise ValueError(f"combustion model {type(model).__name__}.predict returned {len(pred)} rows / columns "
@@ -30,7 +36,7 @@ def _predict(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     m = pd.to_numeric(pred["wiebe_m"], errors="coerce").to_numpy(float).copy()
     bad = ~(np.isfinite(b) & np.isfinite(m) & (b > 0) & (b < 180) & (m > -1) & (m < 20))
     b[bad], m[bad] = np.nan, np.nan
-    return b, m
+    return pred, b, m
 
 
 def _vertex(x, y) -> float:
@@ -221,7 +227,8 @@ class _Runner:
 _PHASING_FD_DEG = 2.0
 #: Gain used when the sensitivity cannot be measured (extra point failed, knock slope not positive): a shift of
 #: the whole burn by 1 deg is then taken as worth 1 deg of spark (knock as a function of phasing alone); the
-#: measured gains on the default R6 map were 0.4-0.8 (docs/sections/knock_uncertainty.md), so this errs safe.
+#: measured gains on the default R6 map were 0.72-0.97 (10-90 %, median 0.89; docs/sections/knock_uncertainty.md),
+#: so this errs safe.
 _PHASING_GAIN_FALLBACK = 1.0
 
 
@@ -231,22 +238,20 @@ def _phasing_std(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.n
     The std is the model's ``ca50_offset_deg_std`` if it predicts one (phasing models), else the delta method on
     ``bdur_10_90_deg_std`` and ``wiebe_m_std`` with independent errors; 0 where the model gives no std at all.
     """
-    q = pts[["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]].reset_index(drop=True)
-    pred = model.predict(q)
-    b, m = _predict(model, pts)
+    pred, b, m = _predict_frame(model, pts)
+    n = len(pred)
     ok = np.isfinite(b)
-    off = np.full(len(q), np.nan)
-    off[ok] = wiebe.burn_angles(0.0, b[ok], m[ok])["ca50_deg_atdc"]
-    sig = np.zeros(len(q))
+    off = np.full(n, np.nan)
+    off[ok] = ca50_offset_deg(b[ok], m[ok])
+    sig = np.zeros(n)
     if "ca50_offset_deg_std" in pred.columns:
         sig = pd.to_numeric(pred["ca50_offset_deg_std"], errors="coerce").to_numpy(float).copy()
     elif {"bdur_10_90_deg_std", "wiebe_m_std"} <= set(pred.columns):
         sb = pd.to_numeric(pred["bdur_10_90_deg_std"], errors="coerce").to_numpy(float)
         sm = pd.to_numeric(pred["wiebe_m_std"], errors="coerce").to_numpy(float)
         h = 1e-4
-        d_m = np.full(len(q), np.nan)
-        d_m[ok] = (wiebe.burn_angles(0.0, b[ok], m[ok] + h)["ca50_deg_atdc"]
-                   - wiebe.burn_angles(0.0, b[ok], m[ok] - h)["ca50_deg_atdc"]) / (2 * h)
+        d_m = np.full(n, np.nan)
+        d_m[ok] = (ca50_offset_deg(b[ok], m[ok] + h) - ca50_offset_deg(b[ok], m[ok] - h)) / (2 * h)
         sig = np.hypot(off / b * sb, d_m * sm)     # offset is proportional to BDUR10-90 at fixed m
     sig = np.where(ok & np.isfinite(sig), np.maximum(sig, 0.0), 0.0)
     return b, m, off, sig
