@@ -421,19 +421,20 @@ def mix_coeffs(coeffs, y_a, y_m, y_p, out):
 
 
 def enthalpy_coeffs(coeffs) -> np.ndarray:
-    """Enthalpy-polynomial form of (..., 2, 7) NASA mass coefficients: (..., 2, 6) [c0, c1/2, c2/3, c3/4, c4/5, c5].
+    """Enthalpy-polynomial form of a (3, 2, 7) block of NASA mass coefficients: (3, 2, 6) [c0, c1/2, c2/3, c3/4, c4/5, c5].
 
     h(T) = T (e0 + T (e1 + T (e2 + T (e3 + T e4)))) + e5 and
     cp(T) = e0 + T (2 e1 + T (3 e2 + T (4 e3 + T 5 e4))): the form the cycle
     kernel mixes, so that its Newton iteration on u(T) does no division by the
-    polynomial's integer constants.
+    polynomial's integer constants.  Python face of :func:`enthalpy_coeffs_into`.
     """
-    c = np.asarray(coeffs, dtype=np.float64)
-    e = np.empty(c.shape[:-1] + (6,))
-    for j in range(5):
-        e[..., j] = c[..., j] / (j + 1.0)
-    e[..., 5] = c[..., 5]
-    return e
+    c = np.ascontiguousarray(coeffs, dtype=np.float64)
+    if c.shape != (3, 2, 7):
+        raise ValueError(f"enthalpy_coeffs: expected (3, 2, 7) coefficients (species A, M, P x 2 ranges), "
+                         f"got shape {c.shape}")
+    out = np.empty((3, 2, 6))
+    enthalpy_coeffs_into(c, out)
+    return out
 
 
 @_jit
@@ -499,8 +500,8 @@ _NEWTON_STEP2 = 1e-4   # [K^2]
 # inlined into its caller at the numba level (the cycle kernel calls it 30 times
 # per step; a call passes each array argument as a 7-word struct on the stack),
 # and with fused multiply-adds like the cycle kernels (see cycle/layout.py).
-# NB numba's cache=True does not track this dependency: after editing this
-# function, delete the cycle kernels' cache (engine_model/cycle/__pycache__/*.nb?).
+# numba's cache=True does not track this dependency; engine_model/cycle/__init__.py
+# drops the cycle kernels' cache when this file changes.
 @numba.njit(cache=True, fastmath={"contract"}, _nrt=False, inline="always")
 def mixture_tcphr(hcoeffs, rsp, y_a, y_m, y_p, u, t_guess):
     """(T, cp, h, R) of a three-species mixture from its specific internal energy; see ``mixture_state``.
