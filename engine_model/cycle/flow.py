@@ -91,6 +91,52 @@ def restrictor_flow(cda, recovery, p_up, t_up, r_up, gamma, p_down):
     return orifice_flow(cda, p_up, t_up, r_up, gamma, restrictor_throat_pressure(p_up, p_down, recovery))
 
 
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def steady_plenum_pressure(thr_cda, res_cda, res_rec, p_amb, t_amb, r, gamma, ve, vd_tot, speed_rpm):
+    """Plenum pressure [Pa] at which throttle + restrictor in series pass what the cylinders draw.
+
+    Steady, isothermal estimate used only to start the cycle iteration close to
+    the answer (bisection on the plenum pressure; inside it, bisection on the
+    throttle-body pressure at which throttle and restrictor pass the same flow).
+
+    Parameters
+    ----------
+    thr_cda, res_cda : float
+        Effective areas of throttle and restrictor throat [m^2].
+    res_rec : float
+        Diffuser pressure recovery of the restrictor [-].
+    p_amb, t_amb : float
+        Ambient pressure [Pa] and temperature [K].
+    r, gamma : float
+        Gas constant [J/(kg K)] and isentropic exponent [-] of the air.
+    ve : float
+        Volumetric efficiency assumed for the cylinders' draw [-], at plenum density.
+    vd_tot : float
+        Total displacement [m^3].
+    speed_rpm : float
+        Engine speed [rpm].
+    """
+    lo, hi = 0.02 * p_amb, p_amb * 0.9999
+    for _ in range(60):
+        p_pl = 0.5 * (lo + hi)
+        a, b = p_pl, p_amb
+        for _ in range(50):
+            p_tb = 0.5 * (a + b)
+            m1 = orifice_flow(thr_cda, p_amb, t_amb, r, gamma, p_tb)
+            m2 = restrictor_flow(res_cda, res_rec, p_tb, t_amb, r, gamma, p_pl)
+            if m1 > m2:
+                a = p_tb
+            else:
+                b = p_tb
+        supply = orifice_flow(thr_cda, p_amb, t_amb, r, gamma, 0.5 * (a + b))
+        draw = ve * p_pl / (r * t_amb) * vd_tot * speed_rpm / 120.0
+        if supply - draw > 0.0:
+            lo = p_pl
+        else:
+            hi = p_pl
+    return 0.5 * (lo + hi)
+
+
 # ----------------------------------------------------------------- Python-side geometry helpers
 
 def throttle_open_area(throttle_pct, bore_m, shaft_m, closed_deg, leak_area_m2=0.0):
