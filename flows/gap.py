@@ -63,6 +63,10 @@ def gap_into(out: Path, bench_df, source: str, spec_path: str | None, address: s
                "gap_after_sigma": d.gap_after, "gap_reduction_pct": d.gap_reduction_pct,
                "base_theta": info["theta"], "overrides": info["overrides"], "simulations": ev.points, "wall_s": round(time.perf_counter() - t0, 1),
                "report": str(paths["markdown"])}
+    pairs = d.extra.get("pairs")
+    if pairs is not None:
+        summary["pair_named"] = list(pairs.named) if pairs.named else None
+        summary["pair_statement"] = pairs.statement
     write_json(summary, out / "gap" / "run.json")
     return summary
 
@@ -120,6 +124,8 @@ def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = gap_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
     print(res["statement"])
+    if res.get("pair_statement"):
+        print(res["pair_statement"])
     print(f"report: {res['report']}")
     return res
 

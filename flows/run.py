@@ -344,6 +344,8 @@ def _write_index(work: Path, man: dict) -> Path:
                                         f"{h['bdur_rmse_deg']:.2f} deg, m {h['m_rmse']:.2f}"))
     if "gap" in man:
         summary.append(("gap diagnosis", man["gap"]["statement"]))
+        if man["gap"].get("pair_statement"):
+            summary.append(("gap, two effects at once", man["gap"]["pair_statement"]))
     summary.append(("wall time", f"{man.get('wall_time_s', 0):.0f} s ({man.get('timings_s', {})})"))
     cal_figs = sorted(p.relative_to(work) for p in (work / "calibration" / "figures").glob("*.png"))
     sections = [("Calibration on the bench data", "Airflow matching and Wiebe identification (report: "
@@ -376,6 +378,8 @@ def _summary_text(man: dict, final: Path) -> str:
                      "lambda_target.csv, PNGs)")
     if "gap" in man:
         lines.append("gap: " + man["gap"]["statement"])
+        if man["gap"].get("pair_statement"):
+            lines.append("gap, pairs: " + man["gap"]["pair_statement"])
     lines.append(f"index: {final}/index.html")
     return "\n".join(lines)
 

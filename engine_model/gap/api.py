@@ -10,6 +10,7 @@ from ..spec import EngineSpec, default_spec
 from .diagnose import GapDiagnosis, check_bench_outputs, diagnose
 from .effects import ETA_TRANS_BASE
 from .linear import SWEEP_BASE, BaseModel, calibrate_base, linearise
+from .pairs import best_pair
 
 __all__ = ["choose_base", "diagnose_bench"]
 
@@ -103,6 +104,8 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
                                     eta_base=eta_base, outputs=outs)
     lin = linearise(plan, evaluate, base, effects=candidates, theta=theta, spec=spec, eta_base=eta_base)
     d = diagnose(lin, bench, candidates=candidates, k_folds=k_folds, n_noise=n_noise, seed=seed, source=source)
+    if len(d.ranking) >= 2:        # the best pair of effects, for when one is not enough
+        d.extra["pairs"] = best_pair(d, n_noise=n_noise, seed=seed)
     info = {"theta": theta, "history": hist, "base": list(base.params), "overrides": dict(overrides or {}),
             "simulations": int(lin.n_simulations + sum(h["simulations"] for h in hist))}
     return d, info

@@ -197,7 +197,12 @@ def _fit_all(prob: _Problem, cand: str | None, r: np.ndarray | None = None):
 
 def _heldout(prob: _Problem, cand: str | None, folds: np.ndarray, r: np.ndarray | None = None) -> tuple[float, np.ndarray]:
     """Held-out chi2 (sum over folds of test-point residuals) and per-observation held-out residuals."""
-    cols = _cols(prob, cand)
+    return _heldout_cols(prob, _cols(prob, cand), folds, r)
+
+
+def _heldout_cols(prob: _Problem, cols: list[int], folds: np.ndarray,
+                  r: np.ndarray | None = None) -> tuple[float, np.ndarray]:
+    """:func:`_heldout` for any set of columns ``cols`` (e.g. the base plus two candidates)."""
     r = prob.r if r is None else r
     a = prob.a[:, cols]
     lo, hi = prob.lo[cols], prob.hi[cols]
@@ -616,7 +621,9 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                                          if g == "base"},
                         n_points=int(point_valid.sum()), n_obs=int(nobs), excluded=excluded, best=best,
                         extra={"heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
-                               "noise_mean_best_improvement": noise_best, "outputs": outputs})
+                               "noise_mean_best_improvement": noise_best, "outputs": outputs,
+                               # for a later search over pairs of candidates (gap.pairs)
+                               "problem": prob, "folds": folds, "linearisation": lin})
 
 
 def _expected_noise_chi2(prob, folds, seed, cache, key) -> float:

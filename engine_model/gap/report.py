@@ -142,6 +142,11 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
                "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
                "gap_reduction_pct": d.gap_reduction_pct, "threshold": d.threshold, "n_points": d.n_points,
                "n_obs": d.n_obs, "base_theta": d.base_theta, "excluded": d.excluded.to_dict("records")}
+    pairs = d.extra.get("pairs")
+    if pairs is not None:
+        paths["pairs"] = write_parquet(pairs.table, folder / "pairs.parquet")
+        summary["pair_named"] = list(pairs.named) if pairs.named else None
+        summary["pair_statement"] = pairs.statement
     paths["summary"] = write_text(json.dumps(summary, indent=1, default=float), folder / "gap_summary.json")
     show = ["rank", "effect", "stage", "params", "heldout_chi2", "heldout_improvement", "delta_aic", "delta_bic",
             "signature_match", "weight", "beats_noise"]
@@ -156,6 +161,16 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
                           f"trials on this design stay below it). {d.n_points} points, {d.n_obs} observations.",
                           figs["ranking"], d.ranking[show]]),
         ("How far it shrinks", [figs["before_after"]]),
+    ]
+    if pairs is not None:
+        show_p = ["effect_a", "effect_b", "params", "heldout_chi2", "improvement_over_base",
+                  "improvement_over_best_single", "reduction_pct", "at_range_bound"]
+        sections.append(("Best pair of effects", [
+            pairs.statement,
+            f"Noise thresholds: improvement over the base {pairs.threshold:.2f}, over the best single candidate "
+            f"{pairs.excess_threshold:.2f} (95 % of pure-noise trials on this design stay below each). Top 10 of "
+            f"{len(pairs.table)} pairs:", pairs.table[show_p].head(10)]))
+    sections += [
         ("Smooth residual field", [d.field]),
     ]
     if len(d.excluded):
