@@ -166,7 +166,10 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
                      f"'{best_single}' by {top['improvement_over_best_single']:.1f} (noise threshold {thr_x:.1f}), "
                      "so the two together explain the gap.")
         if top["at_range_bound"]:
-            statement += f" Caution: {top['at_range_bound']} sits at the edge of its documented range."
+            edge = top["at_range_bound"].split(",")
+            statement += (f" Caution: {' and '.join(edge)} {'sit' if len(edge) > 1 else 'sits'} at the edge of the "
+                          "documented range, so the data ask for more than the effect can physically give: read the "
+                          "pair as the direction of the missing physics, not as fitted causes.")
     else:
         why = []
         if not beats:
