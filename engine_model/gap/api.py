@@ -7,6 +7,7 @@ import pandas as pd
 
 from .. import doe
 from ..spec import EngineSpec, default_spec
+from .covariance import DEFAULT_ERROR_MODEL
 from .diagnose import GapDiagnosis, check_bench_outputs, diagnose
 from .effects import ETA_TRANS_BASE
 from .linear import SWEEP_BASE, BaseModel, calibrate_base, linearise
@@ -55,7 +56,7 @@ def choose_base(bench: pd.DataFrame) -> BaseModel:
 def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None, base: BaseModel | None = None,
                    candidates=None, eta_base: float = ETA_TRANS_BASE, base_iterations: int = 3,
                    k_folds: int = 5, n_noise: int = 200, seed: int = 0, overrides: dict | None = None,
-                   source: str = "bench") -> tuple[GapDiagnosis, dict]:
+                   source: str = "bench", error_model: str = DEFAULT_ERROR_MODEL) -> tuple[GapDiagnosis, dict]:
     """Calibrate the base model on ``bench``, linearise, and diagnose the gap.
 
     Parameters
@@ -77,6 +78,8 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         Spec values fixed by an earlier calibration step (e.g. the airflow match of
         ``engine_model.calibrate``); they become ``spec.*`` columns of every simulated row and the
         effects act on top of them.
+    error_model : str
+        The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).
 
     Returns
     -------
@@ -102,7 +105,8 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
     theta, _, hist = calibrate_base(plan, bench, evaluate, base, iterations=base_iterations, spec=spec,
                                     eta_base=eta_base, outputs=outs)
     lin = linearise(plan, evaluate, base, effects=candidates, theta=theta, spec=spec, eta_base=eta_base)
-    d = diagnose(lin, bench, candidates=candidates, k_folds=k_folds, n_noise=n_noise, seed=seed, source=source)
+    d = diagnose(lin, bench, candidates=candidates, k_folds=k_folds, n_noise=n_noise, seed=seed, source=source,
+                 error_model=error_model)
     info = {"theta": theta, "history": hist, "base": list(base.params), "overrides": dict(overrides or {}),
             "simulations": int(lin.n_simulations + sum(h["simulations"] for h in hist))}
     return d, info
