@@ -262,7 +262,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
                   verify: bool = True, candidates: Sequence[str] | None = None,
                   progress: Callable[[str], None] | None = None, design: str = "sobol",
                   seed_start: int = 0, bench_backoff: bool = True, plan: pd.DataFrame | None = None,
-                  error_model: str = DEFAULT_ERROR_MODEL) -> dict:
+                  error_model: str = DEFAULT_ERROR_MODEL, speed_curvature: bool = False) -> dict:
     """Run the withheld-effect benchmark.
 
     Parameters
@@ -279,7 +279,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     design : str
         ``"sweep"`` or ``"sobol"``, see :func:`benchmark_plan`.
     base : BaseModel, optional
-        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench.
+        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (with
+        ``speed_curvature``).
     evaluate : callable(plan) -> results, optional
         Default: in-process ``simulate`` with ``solver``.
     verify : bool
@@ -293,6 +294,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         ``benchmark_plan(n_points, plan_seed, design=design)``.
     error_model : str
         The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).
+    speed_curvature : bool
+        Let the base carry the burn's speed curvature where the design supports it (``choose_base``).
     bench_backoff : bool
         The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each
         trial is diagnosed on the plan as its engine ran it (one linearisation of the union of these
@@ -347,7 +350,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     null = truth[("none", 0.0)]
     null_plan = plans[("none", 0.0)]
     # the base the data as run can carry (the bench back-off spreads the sparks)
-    base = choose_base(null_plan) if base is None else base
+    base = choose_base(null_plan, speed_curvature) if base is None else base
     say(f"base: {base.params}")
     theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
     t_cal = time.perf_counter() - t0 - t_truth

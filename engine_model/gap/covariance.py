@@ -170,8 +170,11 @@ class ErrorModel:
     min_reduction_pct : float or None
         Second way to claim a noise-beating candidate: it removes at least this share of the held-out gap
         above noise [%].  None: a candidate is claimed only when what it leaves held out is consistent with
-        the error model (below the 99 % quantile that pure noise leaves), which is a fair test only when
-        the error model covers the base's structural misfit.
+        the error model (below the 99 % quantile that pure noise leaves).  Measured with the burn-scatter
+        covariance (docs/sections/gap.md): that strict rule refuses the out-of-library bump that the 50 %
+        rule names on the Sobol' design (5/5 tuning seeds), but it also refuses correctly named effects on
+        noise draws whose own chi2 sits near that quantile (20 of 240 trials on fresh seeds 200-219), so
+        both registered models keep the 50 % rule.
     doc : str
     """
 
@@ -191,9 +194,9 @@ class ErrorModel:
 
 #: Error models of the diagnosis (:func:`engine_model.gap.diagnose.diagnose`, ``error_model=``).
 ERROR_MODELS = {m.name: m for m in (
-    ErrorModel("burn_scatter", MODEL_ERROR_REMAINDER, BURN_SCATTER_DEG, None,
-               "per-point burn scatter as a correlated reading error (GLS), a small diagonal remainder, and a "
-               "claim only when the named effect leaves a residual consistent with that error model"),
+    ErrorModel("burn_scatter", MODEL_ERROR_REMAINDER, BURN_SCATTER_DEG, 50.0,
+               "per-point burn scatter as a correlated reading error (GLS) and a small diagonal remainder; the "
+               "claim rule of 'diagonal'"),
     ErrorModel("diagonal", MODEL_ERROR, 0.0, 50.0,
                "structural error in quadrature per reading; a claim when the named effect removes >= 50 % of "
                "the held-out gap above noise or leaves a residual below the pure-noise 99 % quantile"),
