@@ -162,7 +162,8 @@ def cmd_gap_benchmark(args) -> int:
     from .gap import run_gap_benchmark
 
     run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
-                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design)
+                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design,
+                      error_model=args.error_model, speed_curvature=args.speed_curvature)
     return 0
 
 
@@ -294,6 +295,12 @@ def build_parser() -> argparse.ArgumentParser:
     gb.add_argument("--design", choices=("sobol", "sweep", "discriminating"), default="sobol",
                     help="benchmark DOE: 32 scattered points (default), 8 operating points x 4-spark sweeps, or "
                          "32 points chosen from a candidate pool to tell the effects apart")
+    gb.add_argument("--error-model", choices=("diagonal", "burn_scatter"), default=None,
+                    help="structural error model of the diagnosis: per-reading in quadrature, or per-point burn "
+                         "scatter correlated across a point's readings (GLS); default: the library's")
+    gb.add_argument("--speed-curvature", action="store_true",
+                    help="let the base calibration carry a speed curvature of the burn duration (>= 24 operating "
+                         "points over >= 5000 rpm)")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)

@@ -296,3 +296,30 @@ def test_burn_scatter_discounts_contrasts_a_burn_deviation_can_mimic():
           ((t, design_problem(lin, burn_scatter_deg=t)) for t in (0.0, 0.5))}
     assert d2[0.5][("blowby", "transmission_efficiency")] == pytest.approx(
         d2[0.0][("blowby", "transmission_efficiency")], rel=0.02)
+
+
+def test_speed_curvature_only_when_asked_and_carried():
+    # 32 scattered map-wide points over 6000-12500 rpm: carried when asked; 12 points or one load line: never
+    def table(n, thr=None):
+        rng = np.random.default_rng(4)
+        sp = np.linspace(6000, 12500, n)
+        th = rng.uniform(30, 100, n) if thr is None else np.full(n, thr)
+        return pd.DataFrame({"speed_rpm": sp, "throttle_pct": th, "lambda": 0.9,
+                             "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th))})
+    curv = "bdur_speed2_deg_per_krpm2"
+    assert curv not in choose_base(table(32)).params
+    assert choose_base(table(32), speed_curvature=True).params[-1] == curv
+    assert curv not in choose_base(table(12), speed_curvature=True).params
+    assert curv not in choose_base(table(32, thr=100.0), speed_curvature=True).params
+    assert curv not in choose_base(load_bench(None), speed_curvature=True).params
+
+
+def test_speed_curvature_moves_the_burn_by_the_square_of_the_speed_offset():
+    from engine_model.gap.linear import CURVED_BASE, BaseModel
+
+    pts = pd.DataFrame({"speed_rpm": [6000.0, 9000.0, 12500.0], "throttle_pct": 80.0, "lambda": 0.9,
+                        "spark_deg_btdc": 40.0})
+    base = BaseModel(params=CURVED_BASE)
+    d = (base.plan(pts, {"bdur_speed2_deg_per_krpm2": 0.1})["bdur_10_90_deg"]
+         - base.plan(pts, {})["bdur_10_90_deg"]).to_numpy()
+    np.testing.assert_allclose(d, [0.9, 0.0, 1.225], atol=1e-12)

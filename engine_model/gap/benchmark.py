@@ -33,6 +33,7 @@ import pandas as pd
 from .. import doe
 from ..prepare import SolverSettings
 from ..spec import EngineSpec, default_spec
+from .covariance import DEFAULT_ERROR_MODEL
 from .diagnose import diagnose
 from .effects import EFFECTS, get_effect
 from .linear import BaseModel, calibrate_base, linearise
@@ -260,7 +261,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
                   base: BaseModel | None = None, base_iterations: int = 3, k_folds: int = 5, n_noise: int = 200,
                   verify: bool = True, candidates: Sequence[str] | None = None,
                   progress: Callable[[str], None] | None = None, design: str = "sobol",
-                  seed_start: int = 0, bench_backoff: bool = True, plan: pd.DataFrame | None = None) -> dict:
+                  seed_start: int = 0, bench_backoff: bool = True, plan: pd.DataFrame | None = None,
+                  error_model: str = DEFAULT_ERROR_MODEL, speed_curvature: bool = False) -> dict:
     """Run the withheld-effect benchmark.
 
     Parameters
@@ -277,7 +279,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     design : str
         ``"sweep"`` or ``"sobol"``, see :func:`benchmark_plan`.
     base : BaseModel, optional
-        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench.
+        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (with
+        ``speed_curvature``).
     evaluate : callable(plan) -> results, optional
         Default: in-process ``simulate`` with ``solver``.
     verify : bool
@@ -289,6 +292,10 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     plan : DataFrame, optional
         A DOE made beforehand (e.g. by :func:`engine_model.gap.design.discrimination_plan`); replaces
         ``benchmark_plan(n_points, plan_seed, design=design)``.
+    error_model : str
+        The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).
+    speed_curvature : bool
+        Let the base carry the burn's speed curvature where the design supports it (``choose_base``).
     bench_backoff : bool
         The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each
         trial is diagnosed on the plan as its engine ran it (one linearisation of the union of these
@@ -343,7 +350,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     null = truth[("none", 0.0)]
     null_plan = plans[("none", 0.0)]
     # the base the data as run can carry (the bench back-off spreads the sparks)
-    base = choose_base(null_plan) if base is None else base
+    base = choose_base(null_plan, speed_curvature) if base is None else base
     say(f"base: {base.params}")
     theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
     t_cal = time.perf_counter() - t0 - t_truth
@@ -366,7 +373,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         for s in seed_list:
             meas = apply_noise(truth[(c.effect, c.magnitude)], noise, 1000 + s)
             d = diagnose(lins[(c.effect, c.magnitude)], meas, k_folds=k_folds, n_noise=n_noise, seed=0,
-                         noise_cache=cache)
+                         noise_cache=cache, error_model=error_model)
             top = d.top(3)
             named = d.named or "none"
             if c.effect == "none" or c.effect == OOL_EFFECT:
@@ -397,7 +404,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         ver = _verify(plans, lins, truth, diags, names, seed_list[0], ev, spec)
     timing = {"truth_s": round(t_truth, 1), "base_calibration_s": round(t_cal, 1), "linearisation_s": round(t_lin, 1),
               "diagnosis_s": round(t_diag, 1), "total_s": round(time.perf_counter() - t0, 1),
-              "simulations": int(n_sim[0]), "design": design, "base": list(base.params),
+              "simulations": int(n_sim[0]), "design": design, "base": list(base.params), "error_model": error_model,
               "seeds": seed_list}
     return {"table": table, "summary": summarise_benchmark(table), "plan": plan, "base_theta": theta,
             "verification": pd.DataFrame(ver), "timing": timing, "linearisation": lin_all, "diagnoses": diags,

@@ -33,7 +33,9 @@ Measured limitation: the distances are linear and assume the base's misfit is wh
 stated size; the 32-point plan this makes for the benchmark (13 points at 5000-6000 rpm) names 90.8 % of
 the withheld effects at realistic magnitude (Sobol' 87.1 %) but claims an effect in 25 % of the null
 trials, because the base misfits the hidden engine more at those extremes.  So it is an option of the
-benchmark and a planning aid (``mbc gap-plan``), not the default design.
+benchmark and a planning aid (``mbc gap-plan``), not the default design.  With the burn-scatter error model
+and a base that carries the burn's speed curvature (``--error-model burn_scatter --speed-curvature``) the
+same plan names 91-93 % and claims an effect in 8-11 % of the null trials (docs/sections/gap.md).
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ import pandas as pd
 
 from .. import doe
 from ..spec import EngineSpec, default_spec
+from .covariance import BURN_SCATTER_DEG, whiten_blocks   # the scatter the plan guards against, shared with diagnose
 from .diagnose import MODEL_ERROR, UNCERTAINTY, sigma_of
 from .effects import EFFECTS, get_effect
 from .linear import SWEEP_BASE, BaseModel, Linearisation, linearise
@@ -55,13 +58,6 @@ __all__ = ["DesignProblem", "design_problem", "pair_distances", "select_discrimi
 #: Readings the design counts on (the benchmark's bench: airflow, torque, exhaust T, fuel flow; BSFC is
 #: redundant with fuel flow and torque, as in :func:`engine_model.gap.diagnose.check_bench_outputs`).
 DESIGN_OUTPUTS = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k", "fuel_mass_flow_kg_h")
-
-
-#: Per-point burn-duration scatter the design guards against [deg CA BDUR10-90]: what the smooth base law
-#: cannot follow of the virtual bench's hidden burn (0.23 deg rms per point on the benchmark's null case,
-#: 0.3-0.4 deg estimated there; docs/sections/gap.md).  On the tuning seeds 0-4 (realistic magnitude) the
-#: plan made with it named 52/60 withheld effects, without it 50/60.
-BURN_SCATTER_DEG = 0.3
 
 
 class DesignProblem:
@@ -110,8 +106,9 @@ def design_problem(lin: Linearisation, outputs: Sequence[str] = DESIGN_OUTPUTS, 
     model's own reference outputs.  ``burn_scatter_deg`` > 0 adds, per point, a correlated error along
     the point's BDUR10-90 sensitivity (a burn that deviates from the smooth base law at that point, which
     moves torque and exhaust T together; needs the base column ``bdur_offset_deg``): the covariance per
-    point becomes ``I + tau^2 u u^T`` in sigma units and the blocks are whitened by its Cholesky factor,
-    so the design does not count on contrasts that such a burn deviation can mimic.
+    point becomes ``I + tau^2 u u^T`` in sigma units and the blocks are whitened by its inverse square
+    root (:func:`engine_model.gap.covariance.whiten_blocks`, the same whitening as the diagnosis'
+    ``burn_scatter_deg``), so the design does not count on contrasts that such a burn deviation can mimic.
     """
     unc = dict(UNCERTAINTY)
     unc.update(uncertainty or {})
@@ -124,11 +121,8 @@ def design_problem(lin: Linearisation, outputs: Sequence[str] = DESIGN_OUTPUTS, 
         j = [k for k, c in enumerate(lin.columns) if c == ("base", "bdur_offset_deg")]
         if not j:
             raise ValueError("design_problem: burn_scatter_deg needs the base column bdur_offset_deg")
-        u = np.where(lin.ok[:, None], lin.jac[:, oi, j[0]] / sig, 0.0) * burn_scatter_deg     # (n, o) sigma units
-        u = np.where(np.isfinite(u), u, 0.0)
-        cov = np.eye(len(oi))[None] + np.einsum("no,np->nop", u, u)
-        chol = np.linalg.cholesky(cov)
-        blocks = np.linalg.solve(chol, blocks)
+        u = np.where(lin.ok[:, None], lin.jac[:, oi, j[0]] / sig, 0.0)     # (n, o) sigma per deg
+        blocks = whiten_blocks(blocks, np.where(np.isfinite(u), u, 0.0), burn_scatter_deg)
     names = lin.effect_names() if effects is None else [get_effect(e).name for e in effects]
     return DesignProblem(blocks, lin.column_index("base"), {e: lin.column_index(e) for e in names})
 
@@ -296,7 +290,7 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
     criterion : str
         See :func:`select_discriminating`.
     burn_scatter_deg : float
-        See :func:`design_problem` and :data:`BURN_SCATTER_DEG`.
+        See :func:`design_problem` and :data:`engine_model.gap.covariance.BURN_SCATTER_DEG`.
 
     Returns
     -------

@@ -1,0 +1,215 @@
+"""Structural error model of the base calibration: per-point burn scatter as a correlated reading error.
+
+The smooth global combustion law of the base (:mod:`engine_model.gap.linear`) cannot follow a real
+engine's burn point by point.  On the benchmark's noiseless null case what it leaves is mostly a
+burn-duration deviation per point (0.23-0.3 deg BDUR10-90 rms, docs/sections/gap.md), which moves torque,
+exhaust temperature and (through the exhaust tuning) airflow *together*, along the point's BDUR10-90
+sensitivity.  As a reading error it is correlated across the outputs of one point and independent
+between points:
+
+    C_i = I + tau^2 u_i u_i^T          (readings of point i, in sigma units)
+
+with ``u_i`` the point's whitened BDUR10-90 sensitivity [sigma per deg] and ``tau`` the scatter
+[deg].  A generalised least-squares fit whitens every point's block by ``C_i^(-1/2)``; because the
+correction is rank one, the symmetric inverse square root has the closed form
+
+    C_i^(-1/2) = I - (1 - 1/sqrt(1 + tau^2 |u_i|^2)) u_i u_i^T / |u_i|^2,
+
+which only shrinks the component of a reading pattern along ``u_i`` (a burn-like contrast) and leaves
+the rest of the pattern as it is.  Pure noise drawn as N(0, I) in the whitened space has exactly the
+covariance ``C_i`` in sigma units, so a Monte Carlo threshold computed there covers the structural
+misfit as modelled.
+
+The model-discrimination design (:mod:`engine_model.gap.design`) and the diagnosis
+(:func:`engine_model.gap.diagnose.diagnose`) use the same whitening, so a plan is judged by the
+contrasts the diagnosis will count.
+
+References
+----------
+Aitken, A. C. (1935). On least squares and linear combination of observations. Proc. R. Soc. Edinb. 55,
+42-48 (generalised least squares).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = ["BURN_SCATTER_DEG", "MODEL_ERROR", "MODEL_ERROR_REMAINDER", "ErrorModel", "ERROR_MODELS",
+           "DEFAULT_ERROR_MODEL", "get_error_model", "burn_whitener", "whiten_blocks", "whiten_observations"]
+
+#: Diagonal structural uncertainty of the base model (1 sigma), added in quadrature to the measurement
+#: uncertainty: what a smooth global combustion law cannot follow of a real engine's point-to-point
+#: combustion, treated as independent per reading.  Measured on the virtual bench's null case (no effect, no
+#: noise, 24-point DOE): after the base calibration the residual is 0.42 % rms on torque, 4.8 K on exhaust
+#: temperature, 0.13 % on airflow and 0.26 % on fuel flow; rounded up here.  Without it, the base model's own
+#: misfit would make every remaining residual look significant and no effect could ever be claimed.
+MODEL_ERROR = {
+    "air_mass_flow_kg_h": ("rel", 0.002),
+    "brake_torque_nm": ("rel", 0.004),
+    "exhaust_temp_k": ("abs", 5.0),
+    "fuel_mass_flow_kg_h": ("rel", 0.003),
+    "bsfc_g_kwh": ("rel", 0.005),
+}
+
+#: What is left of the base's structural misfit once the per-point burn deviation is carried by the
+#: burn-scatter covariance (1 sigma, in quadrature with the measurement).  Measured on the 32-point
+#: benchmark's noiseless null case (Sobol' design, 4-term base): of the base residual's chi2, 90 % lies
+#: along the points' BDUR10-90 sensitivities (0.23 deg rms per point); the rest is 0.2 % torque,
+#: 0.7 K exhaust temperature, 0.03 % airflow and 0.08 % fuel flow rms; rounded up here.
+MODEL_ERROR_REMAINDER = {
+    "air_mass_flow_kg_h": ("rel", 0.001),
+    "brake_torque_nm": ("rel", 0.002),
+    "exhaust_temp_k": ("abs", 1.0),
+    "fuel_mass_flow_kg_h": ("rel", 0.001),
+    "bsfc_g_kwh": ("rel", 0.0025),
+}
+
+#: Per-point burn-duration scatter of a real engine about the base's smooth law [deg CA BDUR10-90]:
+#: 0.23 deg rms per point on the benchmark's noiseless null case, 0.3-0.4 deg estimated there
+#: (docs/sections/gap.md).  The discrimination design guards against it (on the tuning seeds 0-4,
+#: realistic magnitude, the plan made with it named 52/60 withheld effects, without it 50/60).
+BURN_SCATTER_DEG = 0.3
+
+
+def burn_whitener(u: np.ndarray, tau: float) -> np.ndarray:
+    """Symmetric inverse square root of ``I + tau^2 u u^T`` per point.
+
+    Parameters
+    ----------
+    u : ndarray (..., o)
+        Whitened BDUR10-90 sensitivity of each point's readings [sigma per deg CA]; non-finite
+        entries count as 0 (a reading the burn does not move).
+    tau : float
+        Burn-duration scatter [deg CA], >= 0.
+
+    Returns
+    -------
+    ndarray (..., o, o)
+        ``W`` with ``W @ (I + tau^2 u u^T) @ W.T = I``; the identity where ``u = 0`` or ``tau = 0``.
+    """
+    if not tau >= 0:
+        raise ValueError(f"burn_whitener: tau = {tau!r} deg must be >= 0")
+    u = np.where(np.isfinite(u), np.asarray(u, dtype=float), 0.0)
+    uu = np.einsum("...o,...o->...", u, u)
+    safe = np.where(uu > 0, uu, 1.0)
+    c = np.where(uu > 0, (1.0 - 1.0 / np.sqrt(1.0 + tau**2 * uu)) / safe, 0.0)
+    eye = np.eye(u.shape[-1])
+    return eye - c[..., None, None] * np.einsum("...o,...p->...op", u, u)
+
+
+def whiten_blocks(blocks: np.ndarray, u: np.ndarray, tau: float) -> np.ndarray:
+    """Whiten per-point blocks of readings: ``W_i @ blocks[i]``.
+
+    Parameters
+    ----------
+    blocks : ndarray (n, o) or (n, o, q)
+        Per point, readings (or sensitivity columns) in sigma units.
+    u : ndarray (n, o)
+        Whitened BDUR10-90 sensitivity per point [sigma per deg CA].
+    tau : float
+        Burn-duration scatter [deg CA].
+
+    Returns
+    -------
+    ndarray, same shape as ``blocks``
+    """
+    w = burn_whitener(u, tau)
+    b = np.asarray(blocks, dtype=float)
+    return np.einsum("nop,np...->no...", w, b)
+
+
+def whiten_observations(values: np.ndarray, point: np.ndarray, output: np.ndarray, u: np.ndarray,
+                        tau: float) -> np.ndarray:
+    """Whiten a flat observation vector (or matrix) whose rows are (point, output) readings.
+
+    Only the readings present are whitened together: point ``i``'s block uses ``u[i]`` restricted to
+    the outputs it has (a missing reading neither carries nor receives burn scatter).
+
+    Parameters
+    ----------
+    values : ndarray (nobs,) or (nobs, q)
+        Readings or sensitivity rows in sigma units.
+    point, output : ndarray of int (nobs,)
+        Point and output index of each row.
+    u : ndarray (n, o)
+        Whitened BDUR10-90 sensitivity per point and output [sigma per deg CA].
+    tau : float
+        Burn-duration scatter [deg CA].
+
+    Returns
+    -------
+    ndarray, same shape as ``values``
+    """
+    v = np.asarray(values, dtype=float)
+    point = np.asarray(point)
+    output = np.asarray(output)
+    n, o = u.shape
+    dense = np.zeros((n, o) + v.shape[1:])
+    dense[point, output] = v
+    mask = np.zeros((n, o))
+    mask[point, output] = 1.0
+    wd = whiten_blocks(dense, u * mask, tau)
+    return wd[point, output]
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """Structural error model of the base calibration and the claim rule it supports.
+
+    Parameters
+    ----------
+    name : str
+    model_error : dict
+        Diagonal structural uncertainty per output, ``('rel', fraction)`` or ``('abs', value)`` in the
+        output's unit, added in quadrature to the measurement uncertainty.
+    burn_scatter_deg : float
+        Per-point burn-duration scatter carried as the correlated covariance ``tau^2 u u^T`` [deg CA];
+        0: none (independent readings).
+    min_reduction_pct : float or None
+        Second way to claim a noise-beating candidate: it removes at least this share of the held-out gap
+        above noise [%].  None: a candidate is claimed only when what it leaves held out is consistent with
+        the error model (below the 99 % quantile that pure noise leaves).  Measured with the burn-scatter
+        covariance (docs/sections/gap.md): that strict rule refuses the out-of-library bump that the 50 %
+        rule names on the Sobol' design (5/5 tuning seeds), but it also refuses correctly named effects on
+        noise draws whose own chi2 sits near that quantile (20 of 240 trials on fresh seeds 200-219), so
+        both registered models keep the 50 % rule.
+    doc : str
+    """
+
+    name: str
+    model_error: dict = field(default_factory=dict)
+    burn_scatter_deg: float = 0.0
+    min_reduction_pct: float | None = None
+    doc: str = ""
+
+    def __post_init__(self):
+        if not self.burn_scatter_deg >= 0:
+            raise ValueError(f"ErrorModel {self.name!r}: burn_scatter_deg = {self.burn_scatter_deg!r} must be >= 0")
+        if self.min_reduction_pct is not None and not 0 < self.min_reduction_pct <= 100:
+            raise ValueError(f"ErrorModel {self.name!r}: min_reduction_pct = {self.min_reduction_pct!r} must be "
+                             "within (0, 100] or None")
+
+
+#: Error models of the diagnosis (:func:`engine_model.gap.diagnose.diagnose`, ``error_model=``).
+ERROR_MODELS = {m.name: m for m in (
+    ErrorModel("burn_scatter", MODEL_ERROR_REMAINDER, BURN_SCATTER_DEG, 50.0,
+               "per-point burn scatter as a correlated reading error (GLS) and a small diagonal remainder; the "
+               "claim rule of 'diagonal'"),
+    ErrorModel("diagonal", MODEL_ERROR, 0.0, 50.0,
+               "structural error in quadrature per reading; a claim when the named effect removes >= 50 % of "
+               "the held-out gap above noise or leaves a residual below the pure-noise 99 % quantile"),
+)}
+
+#: Error model of :func:`engine_model.gap.diagnose.diagnose` when none is given.
+DEFAULT_ERROR_MODEL = "diagonal"
+
+
+def get_error_model(model: "str | ErrorModel") -> ErrorModel:
+    """The :class:`ErrorModel` called ``model`` (or ``model`` itself); ValueError listing the valid names."""
+    if isinstance(model, ErrorModel):
+        return model
+    if model not in ERROR_MODELS:
+        raise ValueError(f"error model {model!r} unknown; valid: {sorted(ERROR_MODELS)}")
+    return ERROR_MODELS[model]
