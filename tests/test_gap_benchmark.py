@@ -22,8 +22,11 @@ LIBRARY = WITHHELD + ["heat_transfer", "friction"]
 
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory):
+    # Sobol' points, not the default discriminating plan: that plan's 160-point candidate pool alone costs
+    # 3 520 simulations, and 12 points chosen to separate the library's effects need not see the
+    # out-of-library bump at 9500 rpm (measured: held-out gap 1.04 vs 1.01 in the null case)
     res = run_benchmark(seeds=1, magnitudes=(1.0,), effects=WITHHELD, candidates=LIBRARY, n_points=12,
-                        base_iterations=2, k_folds=4, n_noise=60, verify=False)
+                        base_iterations=2, k_folds=4, n_noise=60, verify=False, design="sobol")
     out = tmp_path_factory.mktemp("gapbench")
     paths = write_benchmark_report(res, out)
     return res, paths

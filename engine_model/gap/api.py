@@ -88,7 +88,7 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
     evaluate : callable(plan) -> results
     spec : EngineSpec, optional
     base : BaseModel, optional
-        Default :func:`choose_base`.
+        Default :func:`choose_base` with ``speed_curvature=True`` (used only where the plan carries it).
     candidates : sequence of str, optional
         Effects to rank (default: the whole library).
     eta_base : float
@@ -120,7 +120,8 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         k = key[5:] if key.startswith("spec.") else key
         spec.with_values({k: val})          # ValueError naming the key when unknown or out of range
         plan[f"spec.{k}"] = float(val)
-    base = choose_base(plan) if base is None else base
+    # the base the benchmark proves the diagnosis with (the curvature only where the plan carries it)
+    base = choose_base(plan, speed_curvature=True) if base is None else base
     outs = [c for c in ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k") if c in bench.columns
             and np.isfinite(pd.to_numeric(bench[c], errors="coerce")).any()]
     theta, _, hist = calibrate_base(plan, bench, evaluate, base, iterations=base_iterations, spec=spec,
