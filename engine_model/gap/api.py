@@ -43,7 +43,7 @@ def choose_base(bench: pd.DataFrame, speed_curvature: bool = False) -> BaseModel
     cost more than it gained (a transmission loss named as heat transfer, the out-of-library bump
     claimed), so it stays off there.  Table 2 (5 deg span over 7 points, 4.5 deg) keeps the 2-term base.
 
-    ``speed_curvature=True`` (an option, off by default) adds a speed curvature of the burn
+    ``speed_curvature=True`` (off by default here; :func:`diagnose_bench` and the benchmark pass it) adds a speed curvature of the burn
     (``bdur_speed2_deg_per_krpm2``) on map-wide data with at least :data:`CURVATURE_MIN_OPERATING_POINTS`
     operating points over :data:`CURVATURE_MIN_SPEED_SPAN_RPM`: the virtual bench's hidden burn is not
     linear in speed, and the 4-term base's misfit, ordered over speed, is what speed-shaped candidates take

@@ -32,10 +32,10 @@ maximin plan also claimed an effect in 3 of 5 null trials (docs/sections/gap.md)
 Measured limitation: the distances are linear and assume the base's misfit is white noise of the
 stated size; the 32-point plan this makes for the benchmark (13 points at 5000-6000 rpm) names 90.8 % of
 the withheld effects at realistic magnitude (Sobol' 87.1 %) but claims an effect in 25 % of the null
-trials, because the base misfits the hidden engine more at those extremes.  So it is an option of the
-benchmark and a planning aid (``mbc gap-plan``), not the default design.  With the burn-scatter error model
-and a base that carries the burn's speed curvature (``--error-model burn_scatter --speed-curvature``) the
-same plan names 91-93 % and claims an effect in 8-11 % of the null trials (docs/sections/gap.md).
+trials with the diagonal error model, because the base misfits the hidden engine more at those extremes.
+With the burn-scatter error model and a base that carries the burn's speed curvature the same plan names
+91-93 % and claims an effect in 9 % of 340 null trials (docs/sections/gap.md), and since 2026-11-25 that
+combination is the benchmark's default (``mbc gap-benchmark``) as well as a planning aid (``mbc gap-plan``).
 """
 
 from __future__ import annotations

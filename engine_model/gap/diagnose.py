@@ -22,10 +22,11 @@ Steps of :func:`diagnose`:
    base-corrected residual that the candidate's sensitivity pattern spans);
    a candidate is *claimed* only when its held-out improvement beats the
    (1 - alpha) quantile of the best improvement that pure noise produces on
-   the same design (Monte Carlo with the same matrices) AND leaves a held-out
-   residual no larger than pure noise leaves (its 99 % quantile) -- or, with
-   the ``"diagonal"`` error model, removes at least half of the held-out gap
-   above noise; otherwise the answer is "no candidate in the library explains it".
+   the same design (Monte Carlo with the same matrices) AND either removes at
+   least half of the held-out gap above noise or leaves a held-out residual no
+   larger than pure noise leaves (its 99 % quantile; an ``ErrorModel`` with
+   ``min_reduction_pct=None`` keeps only this second path); otherwise the
+   answer is "no candidate in the library explains it".
 
 "Pure noise" is the error model of :mod:`engine_model.gap.covariance`: the
 measurement uncertainty plus the base's structural error, either in quadrature
@@ -394,9 +395,9 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         noise removed or a residual below the pure-noise 99 % quantile) or ``"burn_scatter"`` (every point's
         readings get the covariance ``I + tau^2 u u^T`` in sigma units, ``u`` the point's BDUR10-90
         sensitivity, on top of a small diagonal remainder; all fits are generalised least squares by
-        per-point block whitening, the pure-noise Monte Carlo draws noise with that covariance, and a claim
-        needs the named effect to leave a residual consistent with it).  Residual tables (``z``) stay in
-        diagonal sigma units.
+        per-point block whitening and the pure-noise Monte Carlo draws noise with that covariance; the
+        default since 2026-11-25, with the same claim rule as ``"diagonal"``).  Residual tables (``z``)
+        stay in diagonal sigma units.
     k_folds : int
         Folds over operating points (leave-one-out when there are fewer points).
     alpha : float
