@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 
 from engine_model.gap import get_effect
-from engine_model.gap.diagnose import NO_CANDIDATE, UNCERTAINTY, check_bench_outputs, diagnose
+from engine_model.gap.diagnose import NO_CANDIDATE, UNCERTAINTY, check_bench_outputs, diagnose, param_text
 from engine_model.gap.linear import BaseModel, Linearisation
 
 OUTS = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k")
@@ -94,6 +94,16 @@ def test_names_the_planted_effect(effect):
     row = d.ranking[d.ranking["effect"] == effect].iloc[0]
     assert row["heldout_improvement"] > d.threshold
     assert d.gap_reduction_pct > 50
+
+
+def test_parameter_text_flags_a_standard_error_wider_than_the_range():
+    prm = get_effect("friction").param("delta_a_bar")      # documented range -0.3 .. 0.8 bar
+    width = prm.hi - prm.lo
+    ok = param_text("delta_a_bar", 0.3, 0.5 * width, prm)
+    assert ok.startswith("delta_a_bar = 0.3 +- ") and "not determined" not in ok
+    for se in (1.01 * width, 4.0, float("nan")):
+        bad = param_text("delta_a_bar", 0.3, se, prm)
+        assert "not determined" in bad and f"{prm.lo:g} .. {prm.hi:g}" in bad, bad
 
 
 def test_refuses_pure_noise_and_base_shifts():

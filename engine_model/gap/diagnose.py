@@ -371,6 +371,20 @@ def _shape_label(row) -> str:
 
 # --------------------------------------------------------------------------- main entry
 
+def param_text(name: str, value: float, se: float, prm) -> str:
+    """``name = value +- s.e.`` of a fitted effect parameter, flagged when the data do not determine it.
+
+    A standard error wider than the parameter's whole documented range
+    (``prm.lo`` .. ``prm.hi``) means the fitted value says nothing about the
+    effect's size (typically: the parameter is nearly collinear with the base
+    calibration), and the text says so rather than print a bare number.
+    """
+    txt = f"{name} = {value:.4g} +- {se:.2g}"
+    if not (se <= prm.hi - prm.lo):
+        txt += f" (s.e. wider than its range {prm.lo:g} .. {prm.hi:g}: not determined by these data)"
+    return txt
+
+
 def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[str] | None = None,
              uncertainty: dict | None = None, error_model: str | ErrorModel = DEFAULT_ERROR_MODEL,
              k_folds: int = 5, alpha: float = 0.05, n_noise: int = 200, seed: int = 0,
@@ -526,7 +540,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                 at_bound.append(p)
         rows.append({
             "effect": c, "stage": CHAIN_STAGE.get(c, ""),
-            "params": "; ".join(f"{p} = {v:.4g} +- {s:.2g}" for p, (v, s) in params.items()),
+            "params": "; ".join(param_text(p, v, s, eff.param(p)) for p, (v, s) in params.items()),
             "param_values": {p: v for p, (v, _) in params.items()},
             "heldout_chi2": ho, "heldout_improvement": ho0 - ho,
             "heldout_gap_rms": math.sqrt(ho / nobs),
