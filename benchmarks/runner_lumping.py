@@ -34,6 +34,7 @@ from engine_model import OperatingPoint, default_spec, simulate_point
 from engine_model.bench import load_bench
 from engine_model.cycle import layout as L
 
+
 def _plenum(vol, ncyl):
     """Burned-gas and fresh-mixture mass fractions and temperature of the plenum (volume order: cycle/engine.py)."""
     i = 3 * ncyl
