@@ -6,7 +6,8 @@ Figures printed:
 - milliseconds per converged operating point from a cold start, median over
   >= 50 points spread over throttle, speed and spark;
 - milliseconds per point inside a Wiebe sweep at one operating point, where
-  consecutive points start from the previous converged gas-exchange state;
+  consecutive points start from the previous converged gas-exchange state
+  (default model, and again with the intake runners' backflow slug);
 - cycles to converge, and the largest deviation of the converged answer
   (trapped mass, net IMEP) from the long-run periodic solution (150 plain
   cycles) on a subset of the points of both parts.
@@ -60,6 +61,27 @@ def _deviation(spec, solver, ops, rows) -> tuple[float, float]:
     return dm, dw
 
 
+def _wiebe_sweep(spec, solver, grid, check, label) -> None:
+    """Time a Wiebe sweep at 9000 rpm WOT (consecutive rows reuse the converged state) and check it."""
+    from engine_model import OperatingPoint, simulate
+
+    sweep = pd.DataFrame({"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
+                          "bdur_10_90_deg": [g[0] for g in grid], "wiebe_m": [g[1] for g in grid]})
+    t0, c0 = time.perf_counter(), time.thread_time()
+    res = simulate(spec, sweep, solver)
+    el = time.perf_counter() - t0
+    cel = time.thread_time() - c0
+    print(f"\nWiebe sweep at 9000 rpm WOT, {len(sweep)} points (BDUR10-90 20..50 x m 2..8), warm state reused{label}:")
+    print(f"  per point:                    mean {el / len(sweep) * 1e3:7.1f} ms   (CPU {cel / len(sweep) * 1e3:.1f} ms)"
+          f"   median cycles {res['cycles_run'].median():.0f}   max {res['cycles_run'].max()}"
+          f"   not converged {int((~res['converged']).sum())}")
+    sops = [OperatingPoint(9000.0, 100.0, 50.0, 0.9, float(b), float(m)) for b, m in grid]
+    idx = np.linspace(0, len(sops) - 1, min(check, len(sops))).astype(int)
+    dev = _deviation(spec, solver, [sops[i] for i in idx], [res.iloc[i] for i in idx])
+    print(f"  max deviation from the 150-cycle answer ({len(idx)} points): "
+          f"trapped mass {dev[0] * 100:.3f} %, net IMEP {dev[1] * 100:.3f} %")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--points", type=int, default=60, help="operating points for the cold-start median (>= 50)")
@@ -78,7 +100,7 @@ def main(argv=None) -> int:
         print("cached load + first point   (subprocess, warm cache):   "
               f"{warm:6.2f} s   (import {imp_w:.2f} s)")
 
-    from engine_model import OperatingPoint, SolverSettings, default_spec, simulate, simulate_point
+    from engine_model import OperatingPoint, SolverSettings, default_spec, simulate_point
 
     spec = default_spec()
     solver = SolverSettings()
@@ -122,21 +144,10 @@ def main(argv=None) -> int:
 
     k = int(round(np.sqrt(args.sweep)))
     grid = [(b, m) for b in np.linspace(20.0, 50.0, k) for m in np.linspace(2.0, 8.0, k)]
-    sweep = pd.DataFrame({"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
-                          "bdur_10_90_deg": [g[0] for g in grid], "wiebe_m": [g[1] for g in grid]})
-    t0, c0 = time.perf_counter(), time.thread_time()
-    res = simulate(spec, sweep, solver)
-    el = time.perf_counter() - t0
-    cel = time.thread_time() - c0
-    print(f"\nWiebe sweep at 9000 rpm WOT, {len(sweep)} points (BDUR10-90 20..50 x m 2..8), warm state reused:")
-    print(f"  per point:                    mean {el / len(sweep) * 1e3:7.1f} ms   (CPU {cel / len(sweep) * 1e3:.1f} ms)"
-          f"   median cycles {res['cycles_run'].median():.0f}   max {res['cycles_run'].max()}"
-          f"   not converged {int((~res['converged']).sum())}")
-    sops = [OperatingPoint(9000.0, 100.0, 50.0, 0.9, float(b), float(m)) for b, m in grid]
-    idx = np.linspace(0, len(sops) - 1, min(args.check, len(sops))).astype(int)
-    dev = _deviation(spec, solver, [sops[i] for i in idx], [res.iloc[i] for i in idx])
-    print(f"  max deviation from the 150-cycle answer ({len(idx)} points): "
-          f"trapped mass {dev[0] * 100:.3f} %, net IMEP {dev[1] * 100:.3f} %")
+    _wiebe_sweep(spec, solver, grid, args.check, "")
+    # the same sweep with the intake runners' backflow slug (an option, off by default; docs/sections/speed.md)
+    _wiebe_sweep(spec.with_values({"intake.runner_backflow_slug": True}), solver, grid, args.check,
+                 ", intake.runner_backflow_slug = true")
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
     return 0
 

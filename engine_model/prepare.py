@@ -206,6 +206,9 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     nse = ex.runner_segments if ex.runner_inertia else 1
     par[L.P_IR_NSEG] = nsi
     par[L.P_ER_NSEG] = nse
+    # backflow slug of each intake runner, held in the runner's plenum-side gas share (see ``run_engine``)
+    par[L.P_IR_SLUG_V] = ((1.0 - it.runner_volume_at_port) * par[L.P_IR_A] * it.runner_length_m / nsi
+                          if (it.runner_inertia and it.runner_backflow_slug) else 0.0)
     par[L.P_TP_CDA] = ex.tailpipe_cd * math.pi / 4.0 * ex.tailpipe_diameter_m**2
     par[L.P_KN_A] = kn.delay_coeff_s * (kn.octane_number / 100.0) ** kn.octane_exponent
     par[L.P_KN_N] = kn.pressure_exponent
@@ -309,5 +312,5 @@ def initial_state(spec: EngineSpec, ki: KernelInputs) -> tuple[np.ndarray, np.nd
         fill(i, p_pl, t_amb, 1.0, 0.0, 0.0)
     for i in range(j0 + ncyl * (nsi - 1), nvol):        # exhaust runner joints: hot products
         fill(i, 1.03 * p_amb, 900.0, 0.0, 0.0, 1.0)
-    mr = np.zeros(ncyl * (nsi + nse))
+    mr = np.zeros(ncyl * (nsi + nse + L.NSLUG))   # runner flows at rest, backflow slugs empty
     return vol, mr

@@ -43,7 +43,7 @@ from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, wosc
 from .layout import *  # noqa: F401,F403  (index constants)
 from .network import _add_rate, _lin_between, _orifice_between, _solve_one, _solve_two
 from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
-from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer
+from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer, _transfer_as
 
 RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence estimate
 # [-] slowest cycle-to-cycle ratio assumed until an extrapolation has measured one:
@@ -51,6 +51,8 @@ RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence est
 # (measured on 12 points, 250-cycle runs); a larger value only costs cycles.
 RHO_START = 0.92
 RHO_MAX = 0.97   # [-] ratios above this count as not contracting
+SLUG_EMPTY = 1e-12  # [-] a backflow slug below this share of its room counts as empty
+PHI_DT = 0.5        # [-] slug share of a forward draw m_s / (m_s + PHI_DT m dt)
 MBAL_SHARE = 0.25   # [-] the cycle's mass imbalance must be below this share of the tolerance (floor seen ~1.5e-4)
 
 
@@ -63,6 +65,119 @@ def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
     """
     return 3 * ncyl + 3 + ncyl * (nseg_in - 1) + ncyl * (nseg_ex - 1)
 
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
+def _plenum_bulk(vol, mr, props, ipl, nflow, ncyl):
+    """Mass fractions and specific enthalpy [J/kg] of the plenum's bulk: the plenum node minus the slugs.
+
+    The slugs hold their gas at the enthalpy it came in with, so the bulk's
+    enthalpy is what the node's enthalpy leaves for it.  Falls back to the node's
+    own properties should the slugs ever hold more than three quarters of it.
+    """
+    sa = 0.0
+    sm = 0.0
+    sp = 0.0
+    sh = 0.0
+    for k in range(ncyl):
+        b = nflow + NSLUG * k
+        sa += max(mr[b + SL_A], 0.0)
+        sm += max(mr[b + SL_M], 0.0)
+        sp += max(mr[b + SL_P], 0.0)
+        sh += mr[b + SL_H]
+    ba = max(vol[ipl, V_MA] - sa, 0.0)
+    bm = max(vol[ipl, V_MM] - sm, 0.0)
+    bp = max(vol[ipl, V_MP] - sp, 0.0)
+    mb = ba + bm + bp
+    mpl = vol[ipl, V_MA] + vol[ipl, V_MM] + vol[ipl, V_MP]
+    if mb > 0.25 * mpl:
+        return ba / mb, bm / mb, bp / mb, (mpl * props[ipl, PR_H] - sh) / mb
+    return props[ipl, PR_YA], props[ipl, PR_YM], props[ipl, PR_YP], props[ipl, PR_H]
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
+def _slug_flow(ipl, dn, m, mr, dmr, b, slug_v, yb_a, yb_m, yb_p, hb, dt, props, dvol):
+    """Flow ``m`` [kg/s] plenum node -> runner (negative: back into the plenum node) through a backflow slug.
+
+    Backflow enters the slug ``mr[b:b + NSLUG]`` with the composition and
+    enthalpy of the gas it comes from.  Forward flow takes the share
+    phi = m_s / (m_s + PHI_DT m dt) from the slug and the rest from the plenum's
+    bulk (composition ``yb_*``, specific enthalpy ``hb`` [J/kg]).  With PHI_DT =
+    1/2 that is the step's discretisation of "all from the slug until it is
+    empty": phi is 1 to within PHI_DT dt m / m_s, and in the step where the slug
+    runs out the Heun predictor overshoots below zero, the second stage draws
+    nothing and the slug ends the step exactly empty.  (A wider transition,
+    PHI_DT = 1 or 2, left a tail of slug that never emptied and a
+    cycle-to-cycle noise floor of ~3e-5 at low load.)
+
+    The slug has room for ``slug_v`` [m^3] times the node's density: as it fills
+    the last fifth of that room, backflow pushes a growing share g (a
+    smoothstep from 0 at 80 % to 1 at 100 % full) of its own mass out of the
+    slug's far end into the bulk, so a full slug passes on what it takes in (a
+    ramp, not a switch, keeps the right-hand side continuous).  Mass, species
+    and energy of the plenum node and of the runner's downstream volume change
+    exactly as for any other flow; the slug is a ledger inside the node.
+    """
+    room = slug_v * props[ipl, PR_RHO]          # [kg]
+    s_a = max(mr[b + SL_A], 0.0)
+    s_m = max(mr[b + SL_M], 0.0)
+    s_p = max(mr[b + SL_P], 0.0)
+    ms = s_a + s_m + s_p
+    live = ms > SLUG_EMPTY * room               # below: counts as empty (no 1/ms of denormal masses)
+    inv = 1.0 / ms if live else 0.0
+    hs = mr[b + SL_H] * inv if live else hb
+    if m >= 0.0:
+        phi = ms / (ms + PHI_DT * m * dt) if live else 0.0
+        w = m * phi * inv                       # [1/s]: share of the slug leaving per second
+        dmr[b + SL_A] = -w * s_a
+        dmr[b + SL_M] = -w * s_m
+        dmr[b + SL_P] = -w * s_p
+        dmr[b + SL_H] = -m * phi * hs
+        # what the runner receives: the slug's share plus the bulk's
+        ya = phi * s_a * inv + (1.0 - phi) * yb_a
+        ym = phi * s_m * inv + (1.0 - phi) * yb_m
+        yp = phi * s_p * inv + (1.0 - phi) * yb_p
+        _transfer_as(ipl, dn, m, ya, ym, yp, phi * hs + (1.0 - phi) * hb, dvol)
+    else:
+        dmr[b + SL_A] = -m * props[dn, PR_YA]
+        dmr[b + SL_M] = -m * props[dn, PR_YM]
+        dmr[b + SL_P] = -m * props[dn, PR_YP]
+        dmr[b + SL_H] = -m * props[dn, PR_H]
+        x = (ms / room - 0.8) * 5.0             # 0 at 80 %, 1 at 100 % of the room
+        if x > 0.0 and live:
+            g = 1.0 if x >= 1.0 else x * x * (3.0 - 2.0 * x)
+            r = -m * g * inv                    # [1/s]: share of the slug pushed on into the bulk
+            dmr[b + SL_A] -= r * s_a
+            dmr[b + SL_M] -= r * s_m
+            dmr[b + SL_P] -= r * s_p
+            dmr[b + SL_H] -= r * ms * hs
+        _transfer_as(ipl, dn, m, props[dn, PR_YA], props[dn, PR_YM], props[dn, PR_YP], props[dn, PR_H], dvol)
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _consistent_slugs(vol, mr, ipl, nflow, ncyl):
+    """Keep the slug ledgers inside the plenum node after an extrapolated (or supplied) state.
+
+    No slug species below zero, and together no more of a species than the node
+    holds (scaled down, with its enthalpy content, where they would).
+    """
+    for c in range(3):
+        tot = 0.0
+        for k in range(ncyl):
+            b = nflow + NSLUG * k
+            if mr[b + c] < 0.0:
+                mr[b + c] = 0.0
+            tot += mr[b + c]
+        have = max(vol[ipl, c], 0.0)
+        if tot > have:
+            f = have / tot
+            for k in range(ncyl):
+                b = nflow + NSLUG * k
+                ms = mr[b + SL_A] + mr[b + SL_M] + mr[b + SL_P]
+                cut = mr[b + c] * (1.0 - f)
+                if ms > 0.0:
+                    mr[b + SL_H] *= (ms - cut) / ms
+                mr[b + c] -= cut
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -100,6 +215,19 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
     # over the segments, so in steady flow the runner's pressure drop is
     # k_r * m^2 / (2 rho A^2) whatever ``nseg``.
     jnt = icol + 1
+    # Backflow slugs of the intake runners (``P_IR_SLUG_V`` > 0): gas pushed back out
+    # of a port is held, in the runner's plenum-side share of the plenum node, as a
+    # slug of its own composition and enthalpy, and is the first gas that runner
+    # draws again; only what overflows that share joins the plenum's bulk.  The
+    # plenum node's pressure and temperature stay those of all its gas; the bulk,
+    # which every runner draws once its slug is used up, is the node minus the slugs.
+    slug_v = par[P_IR_SLUG_V]
+    slug_on = slug_v > 0.0 and par[P_IR_INERTIA] > 0.5
+    nflow = ncyl * (int(par[P_IR_NSEG]) + int(par[P_ER_NSEG]))
+    if slug_on:
+        yb_a, yb_m, yb_p, hb = _plenum_bulk(vol, mr, props, ipl, nflow, ncyl)
+    else:
+        yb_a, yb_m, yb_p, hb = props[ipl, PR_YA], props[ipl, PR_YM], props[ipl, PR_YP], props[ipl, PR_H]
     for side in range(2):
         if side == 0:
             a_r = par[P_IR_A]
@@ -136,7 +264,10 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
                 else:
                     m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
                     dmr[idx] = 0.0
-                _transfer(up, dn, m, nvol, props, dvol)
+                if slug_on and side == 0 and j == 0:
+                    _slug_flow(up, dn, m, mr, dmr, nflow + NSLUG * k, slug_v, yb_a, yb_m, yb_p, hb, dt, props, dvol)
+                else:
+                    _transfer(up, dn, m, nvol, props, dvol)
                 _add_rate(up, dn, m, nvol, props, vcur, rate)
             jnt += nseg - 1
 
@@ -233,7 +364,12 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
     acc[A_AIR] += mth * (1.0 if mth >= 0.0 else props[itb, PR_YA])   # air only: what an airflow meter sees
     acc[A_MIN] += mth                                                 # all species: for the mass balance
     acc[A_HAIR] += mth * (props[amb, PR_H] if mth >= 0.0 else props[itb, PR_H])
-    _transfer(itb, ipl, E[1, 6], nvol, props, dvol)
+    mres = E[1, 6]
+    if mres < 0.0 and slug_on:
+        # gas pushed back through the restrictor comes from the plenum's bulk, not from the runners' slugs
+        _transfer_as(itb, ipl, mres, yb_a, yb_m, yb_p, hb, dvol)
+    else:
+        _transfer(itb, ipl, mres, nvol, props, dvol)
     mtp = E[2, 6]
     _transfer(icol, tpipe, mtp, nvol, props, dvol)
     acc[A_OUT] += mtp
@@ -341,6 +477,10 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         if tab[T_PHASE, li0] > 1.5 and li0 != idx_soc:
             xb0 = tab[T_XB, li0]
             ref[k, 4] = vol[k, V_MM] / (1.0 - xb0) if xb0 < 1.0 - 1e-9 else vol[k, V_MM]
+    nflow = ncyl * (int(par[P_IR_NSEG]) + int(par[P_ER_NSEG]))
+    slug_on = par[P_IR_SLUG_V] > 0.0 and par[P_IR_INERTIA] > 0.5 and mr.shape[0] >= nflow + NSLUG * ncyl
+    if slug_on:
+        _consistent_slugs(vol, mr, ipl, nflow, ncyl)
     knock_run = np.zeros(ncyl)       # running Livengood-Wu integral since IVC
     knock_cyc = np.zeros(ncyl)       # value reached in this cycle
     trapped = np.zeros(ncyl)
@@ -431,6 +571,13 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 t_start[i] = t0
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
+            if slug_on:
+                # a slug that runs out within the step overshoots below zero in the predictor (its second
+                # stage then draws nothing and the step ends with it empty, see ``_slug_flow``); where the
+                # plenum's bulk holds none of a species, the node's predicted mass of it overshoots with it
+                for c in range(V_U):
+                    if vol1[ipl, c] < 0.0:
+                        vol1[ipl, c] = 0.0
             fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
                            vcur, d1, dm1, a1, rate, E)
             if fail != 0:
@@ -519,6 +666,8 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                             if j % (NVCOL - 1) < V_U and xe[j] < 0.1 * xl[j]:
                                 xe[j] = 0.1 * xl[j]
                         unpack_state(xe, vol, mr)
+                        if slug_on:
+                            _consistent_slugs(vol, mr, ipl, nflow, ncyl)
                         jumped = True
                         rho_slow = min(max(ratio, RHO_START), RHO_MAX)
                         prev_trap = -1.0   # the next cycle starts a fresh comparison

@@ -77,7 +77,17 @@ P_ACCEL_K = 40      # modes removed per MPE extrapolation of the cycle iteration
 P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
 P_ER_NSEG = 42      # lumped segments per exhaust runner
 P_ACCEL_WARM = 43   # first cycle whose end state enters the MPE window
-NPAR = 44
+P_IR_SLUG_V = 44    # gas volume of an intake runner's plenum-side share [m3] that holds its backflow slug (0 = backflow mixes into the plenum)
+NPAR = 45
+
+# ------------------------------------------------------------------ runner state array (mr)
+# mr[: ncyl * (nseg_in + nseg_ex)] are the runner segment mass flows [kg/s]; then
+# NSLUG entries per intake runner: the backflow slug held in its plenum-side share
+SL_A = 0    # air [kg]
+SL_M = 1    # fresh mixture [kg]
+SL_P = 2    # products [kg]
+SL_H = 3    # enthalpy content [J] (the specific enthalpy it entered with, times its mass)
+NSLUG = 4
 
 # ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
 T_V = 0        # cylinder volume [m3]

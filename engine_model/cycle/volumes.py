@@ -80,6 +80,23 @@ def _transfer(i, j, mdot, nvol, props, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
+    """Move ``mdot`` [kg/s] from volume i to volume j with the given mass fractions and specific enthalpy [J/kg]."""
+    fa = mdot * ya
+    fm = mdot * ym
+    fp = mdot * yp
+    fh = mdot * h
+    dvol[i, V_MA] -= fa
+    dvol[i, V_MM] -= fm
+    dvol[i, V_MP] -= fp
+    dvol[i, V_U] -= fh
+    dvol[j, V_MA] += fa
+    dvol[j, V_MM] += fm
+    dvol[j, V_MP] += fp
+    dvol[j, V_U] += fh
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
     """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
     if m >= 0.0:
