@@ -229,6 +229,12 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
         vol, mr = state[0].copy(), state[1].copy()
         if len(state) > 2:
             ref = state[2].copy()
+        want_vol = (len(ki.vfix), L.NVCOL)
+        want_mr = ki.ncyl * (ki.nseg_in + ki.nseg_ex + L.NSLUG)
+        if vol.shape != want_vol or mr.shape != (want_mr,) or ref.shape != (ki.ncyl, 5):
+            raise ValueError(f"state: shapes {vol.shape}, {mr.shape}, {ref.shape} do not fit this spec's network "
+                             f"(expected {want_vol}, ({want_mr},), ({ki.ncyl}, 5)); pass the state a run of "
+                             "the same runner layout returned")
     out = np.zeros(L.NOUT)
     trace = np.zeros((2 * ki.ncyl + 5, ki.nstep))
     hist = np.zeros((0, L.H_N0 + vol.shape[0] * (L.NVCOL - 1) + mr.shape[0]))

@@ -117,3 +117,17 @@ def test_bad_spec_override_names_row_and_key():
         simulate(default_spec(), pd.DataFrame([base, base]).assign(**{"spec.intake.restrictor_cd": [0.9, -1.0]}))
     with pytest.raises(ValueError, match=r"row 0.*'intake.no_such_field'.*no such field"):
         simulate(default_spec(), pd.DataFrame([base]).assign(**{"spec.intake.no_such_field": [1.0]}))
+
+
+def test_a_state_of_another_runner_layout_is_refused():
+    """A gas-exchange state from a network of another shape (here 2 runner segments) is a ValueError, not a crash."""
+    from engine_model import OperatingPoint, SolverSettings, simulate_point
+    spec = default_spec()
+    op = OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4)
+    _, state = simulate_point(spec.with_values({"intake.runner_segments": 2}), op,
+                              SolverSettings(max_cycles=1, min_cycles=1))
+    with pytest.raises(ValueError, match="do not fit this spec's network"):
+        simulate_point(spec, op, state=state)
+    short = (state[0], state[1][:-1], state[2])
+    with pytest.raises(ValueError, match="do not fit"):
+        simulate_point(spec.with_values({"intake.runner_segments": 2}), op, state=short)

@@ -409,9 +409,11 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         Fuel-vapour coefficients.
     vol : (nvol, NVCOL) float64
         Initial state of every volume; overwritten with the final state.
-    mr : (ncyl * (nseg_in + nseg_ex),) float64
-        Initial runner segment mass flows [kg/s] (intake runners, then exhaust,
-        each runner's segments from its upstream end); overwritten.
+    mr : (ncyl * (nseg_in + nseg_ex + NSLUG),) float64
+        Runner state: segment mass flows [kg/s] (intake runners, then exhaust,
+        each runner's segments from its upstream end), then each intake runner's
+        backflow slug (air, mixture, products [kg], enthalpy content [J]; used
+        when ``par[P_IR_SLUG_V] > 0``, zeros otherwise); overwritten.
     ref : (ncyl, 5) float64
         Per-cylinder reference state of the closed period: pressure [Pa],
         temperature [K] and volume [m^3] at IVC, isentropic exponent
