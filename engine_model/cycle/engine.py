@@ -480,7 +480,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             xb0 = tab[T_XB, li0]
             ref[k, 4] = vol[k, V_MM] / (1.0 - xb0) if xb0 < 1.0 - 1e-9 else vol[k, V_MM]
     nflow = ncyl * (int(par[P_IR_NSEG]) + int(par[P_ER_NSEG]))
-    slug_on = par[P_IR_SLUG_V] > 0.0 and par[P_IR_INERTIA] > 0.5 and mr.shape[0] >= nflow + NSLUG * ncyl
+    slug_on = par[P_IR_SLUG_V] > 0.0 and par[P_IR_INERTIA] > 0.5   # same test as ``_derivs`` (mr's shape: simulate_point)
     if slug_on:
         _consistent_slugs(vol, mr, ipl, nflow, ncyl)
     knock_run = np.zeros(ncyl)       # running Livengood-Wu integral since IVC
