@@ -1,0 +1,1 @@
+"""ECU tables: export to and import from the files engine-management software reads."""
