@@ -24,7 +24,7 @@ Putting a table on other breakpoints
 :func:`to_map_kpa`
     a throttle-% table onto a MAP axis, inverting each rpm column's
     throttle -> plenum pressure map (see its docstring for the rules at
-    plateaus and non-monotone columns).
+    plateaus, dips and pressures a column does not reach).
 
 Fuel quantities
 ---------------
@@ -346,46 +346,44 @@ def resample(table: EcuTable, rpm_bins, load_bins) -> Resampled:
     return Resampled(new, outside)
 
 
-def _n_solutions(p: np.ndarray, k: float, tol: float) -> tuple[int, bool]:
-    """Number of throttle positions where the piecewise-linear p(throttle) equals k, and whether p is flat at k."""
-    n = int(np.sum(np.abs(p - k) <= tol))
+def _throttle_positions(p: np.ndarray, k: float, tol: float) -> tuple[list[float], bool]:
+    """Fractional throttle-row positions where the piecewise-linear p(row) equals k, and whether p is flat at k."""
+    pos = [float(i) for i in np.flatnonzero(np.abs(p - k) <= tol)]
     flat = False
-    for a, b in zip(p[:-1], p[1:]):
+    for i, (a, b) in enumerate(zip(p[:-1], p[1:])):
         if abs(a - b) <= tol:
             flat |= abs(a - k) <= tol
         elif min(a, b) + tol < k < max(a, b) - tol:
-            n += 1
-    return n, flat
+            pos.append(i + (k - a) / (b - a))
+    return sorted(pos), flat
 
 
 def to_map_kpa(table: EcuTable, map_kpa_per_cell, kpa_bins) -> Resampled:
     """A throttle-% table on a MAP [kPa] load axis, from the model's plenum pressure of every cell.
 
-    Per rpm column ``j`` the throttle rows give pressures ``p[i, j]``; the
-    table value at a requested pressure ``k`` is interpolated linearly in
-    pressure between the two throttle rows whose pressures bracket ``k``.
-    This inverts throttle -> kPa, so it is exact where that map is strictly
-    increasing in throttle.  The rules where it is not:
+    Per rpm column ``j`` the throttle rows give pressures ``p[i, j]``, taken
+    piecewise linear between rows.  For a requested pressure ``k`` the
+    throttle position where ``p = k`` is found and the table value is
+    interpolated linearly between the two throttle rows around it.  This
+    inverts throttle -> kPa and is exact for a table linear in throttle
+    between rows.  Where the column is not one-to-one:
 
-    * Only the strictly increasing envelope of the column is used: a row is
-      kept when its pressure exceeds that of every lower throttle row.  Rows
-      at or below an earlier pressure (a plateau: a restricted engine whose
-      plenum pressure saturates at part throttle, or a dip) are skipped, so
-      between kept rows the value of the lowest throttle that reaches the
-      pressure is used.
-    * A cell is flagged in ``outside`` when ``k`` lies outside the pressures
-      the column reaches (the edge value is held: clamp), or when ``k`` is
-      reached at more than one throttle position or on a flat stretch (MAP
-      does not identify the throttle row there, so an ECU looking up by MAP
-      cannot reproduce the throttle table).
+    * ``k`` below / above every pressure of the column: the value of the row
+      with the lowest / highest pressure is held (clamp) and the cell is
+      flagged in ``outside``;
+    * ``k`` reached at several throttle positions (a dip) or on a flat
+      stretch (a plateau: a restricted engine whose plenum pressure
+      saturates at part throttle): the lowest such throttle position is used
+      and the cell is flagged, since an ECU looking up by MAP cannot tell
+      these throttle positions apart.
 
     The ECU's MAP is assumed to equal the model's plenum pressure of the
     cell (cycle average): with Speeduino set ``mapSample`` to "Cycle
     Average", with rusEFI use its MAP averaging window; instantaneous
     sampling of a single-throttle-per-cylinder intake reads differently.
 
-    Flags and uncertainty: from the bracketing rows (OR, max), as in
-    :func:`resample`.
+    Flags and uncertainty: from the two rows around the position (OR, max),
+    as in :func:`resample`.
 
     Parameters
     ----------
@@ -410,31 +408,31 @@ def to_map_kpa(table: EcuTable, map_kpa_per_cell, kpa_bins) -> Resampled:
         i, j = np.argwhere(p <= 0)[0]
         raise ValueError(f"{owner}.map_kpa_per_cell: cell [{i}, {j}] = {p[i, j]:g} kPa must be > 0")
     kpa = _axis(owner, "kpa_bins", kpa_bins, "kPa")
-    nk, nr = kpa.size, table.rpm.size
-    vals = np.empty((nk, nr))
+    nk, nr, nl = kpa.size, table.rpm.size, table.load.size
+    pos = np.empty((nk, nr))
     outside = np.zeros((nk, nr), bool)
-    flags = None if table.flags is None else np.zeros((nk, nr), bool)
-    unc = None if table.uncertainty is None else np.zeros((nk, nr))
     for j in range(nr):
         col = p[:, j]
-        keep = np.r_[True, col[1:] > np.maximum.accumulate(col)[:-1]]
-        idx = np.flatnonzero(keep)
-        if idx.size == 1:           # pressure never rises: MAP cannot tell any row apart
-            lo = hi = np.zeros(nk, int)
-            w = np.zeros(nk)
-            out = np.ones(nk, bool)
-        else:
-            lo, hi, w, out = _brackets(col[idx], kpa)
-        rows_lo, rows_hi = idx[lo], idx[hi]
-        vals[:, j] = (1 - w) * table.values[rows_lo, j] + w * table.values[rows_hi, j]
         tol = 1e-9 * max(1.0, float(np.max(col)))
-        ambiguous = np.array([(lambda n, f: n != 1 or f)(*_n_solutions(col, k, tol)) for k in kpa])
-        outside[:, j] = out | ambiguous
-        if flags is not None:
-            flags[:, j] = ((w < 1) & table.flags[rows_lo, j]) | ((w > 0) & table.flags[rows_hi, j])
-        if unc is not None:
-            unc[:, j] = np.maximum(np.where(w < 1, table.uncertainty[rows_lo, j], 0.0),
-                                   np.where(w > 0, table.uncertainty[rows_hi, j], 0.0))
+        for m, k in enumerate(kpa):
+            if k < col.min() - tol:
+                pos[m, j], outside[m, j] = float(np.argmin(col)), True
+            elif k > col.max() + tol:
+                pos[m, j], outside[m, j] = float(np.argmax(col)), True
+            else:
+                found, flat = _throttle_positions(col, k, tol)
+                pos[m, j], outside[m, j] = found[0], len(found) != 1 or flat
+    lo = np.clip(np.floor(pos).astype(int), 0, nl - 1)
+    hi = np.minimum(lo + 1, nl - 1)
+    w = pos - lo
+    cols = np.broadcast_to(np.arange(nr), (nk, nr))
+    vals = (1 - w) * table.values[lo, cols] + w * table.values[hi, cols]
+    flags = unc = None
+    if table.flags is not None:
+        flags = ((w < 1) & table.flags[lo, cols]) | ((w > 0) & table.flags[hi, cols])
+    if table.uncertainty is not None:
+        unc = np.maximum(np.where(w < 1, table.uncertainty[lo, cols], 0.0),
+                         np.where(w > 0, table.uncertainty[hi, cols], 0.0))
     new = replace(table, values=vals, load=kpa, load_kind="map_kpa", flags=flags, uncertainty=unc)
     outside.setflags(write=False)
     return Resampled(new, outside)
