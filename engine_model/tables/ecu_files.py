@@ -194,7 +194,7 @@ def _dcm_map(name: str, langname: str, table: EcuTable, values: np.ndarray, unit
         raise ValueError(f"DCM name {name!r}: must start with a letter or '_' and hold only letters, digits, "
                          "'_', '.', '[', ']'")
     nl, nr = table.shape
-    out = [f"KENNFELD {name} {nr} {nl}", f"   LANGNAME {_dcm_str(langname)}", f'   EINHEIT_X "rpm"',
+    out = [f"KENNFELD {name} {nr} {nl}", f"   LANGNAME {_dcm_str(langname)}", '   EINHEIT_X "rpm"',
            f"   EINHEIT_Y {_dcm_str(table.load_unit)}", f"   EINHEIT_W {_dcm_str(unit)}"]
     out += _dcm_lines("ST/X", table.rpm, _axis_decimals(table.rpm))
     yd = _axis_decimals(table.load)

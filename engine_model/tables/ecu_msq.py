@@ -344,9 +344,9 @@ def write_msq(tables, path, firmware: str, *, kinds=None, resample_to=None, shap
         report.signature = msq_signature(merge_into)
         return report
     date = write_date or _dt.datetime.now().strftime("%a %b %d %H:%M:%S %Y")
+    comment = _q("partial tune: " + ", ".join(report.constants))
     out = ['<?xml version="1.0" encoding="ISO-8859-1"?>', f'<msq xmlns="{MSQ_NS}">',
-           f'    <bibliography author={_q(author)} tuneComment={_q("partial tune: " + ", ".join(report.constants))}'
-           f' writeDate={_q(date)}/>']
+           f"    <bibliography author={_q(author)} tuneComment={comment} writeDate={_q(date)}/>"]
     npages = f' nPages="{_NPAGES[firmware]}"' if firmware in _NPAGES else ""
     out.append(f'    <versionInfo fileFormat="5.0"{npages} signature={_q(report.signature)}/>')
     for (page, size) in sorted(pages, key=lambda p: p[0]):

@@ -483,7 +483,7 @@ def injection_ms(speed_rpm, lam, spec: EngineSpec, *, air_mg_per_cycle=None, air
     subtract ``injection_ms(...) - fuel_mg(...) / (k q_static)``, or use
     :func:`fuel_mg` directly for a fuel-mass ECU.
     """
-    from ..maps_tables import injection_time_ms   # lazy: keeps this module importable on its own
+    from ..maps_tables import injection_time_ms  # lazy: keeps this module importable on its own
 
     ga = _air_flow_kg_h(speed_rpm, spec, air_mg_per_cycle, air_flow_kg_h, "injection_ms")
     return injection_time_ms(ga, speed_rpm, lam, spec, battery_v=battery_v)["injection_time_ms"]

@@ -19,11 +19,14 @@ import pytest
 
 from engine_model import thermo
 from engine_model.spec import default_spec
-from engine_model.tables.ecu_files import (FORMATS, compare, plot_difference, read_axes, read_dcm, read_table,
-                                           write_csv, write_dcm, write_table, write_tunerstudio_table)
+from engine_model.tables.ecu_files import (
+    FORMATS, compare, plot_difference, read_axes, read_dcm, read_table, write_csv, write_dcm, write_table,
+    write_tunerstudio_table,
+)
 from engine_model.tables.ecu_msq import FIRMWARE_TABLES, msq_signature, read_msq, write_msq
-from engine_model.tables.ecu_table import (R_AIR_J_KG_K, EcuTable, fuel_mg, injection_ms, resample, to_map_kpa,
-                                           ve_percent)
+from engine_model.tables.ecu_table import (
+    R_AIR_J_KG_K, EcuTable, fuel_mg, injection_ms, resample, to_map_kpa, ve_percent,
+)
 
 DATA = Path(__file__).parent / "data"
 REF_DATE = "Mon Jan 06 10:00:00 2025"
@@ -485,7 +488,8 @@ def test_csv_matches_hand_written_reference(tmp_path):
 def test_csv_round_trip_with_independent_parser(tmp_path):
     t = odd_table(decimals=1)
     path = write_table(t, tmp_path / "spark.csv")
-    rows = list(csv.reader(open(path, newline="")))
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
     meta = {r[0]: r[1:] for r in rows[:rows.index(["[values]"])]}
     assert meta["table"] == ["spark_advance"] and meta["unit"] == ["deg BTDC"]
     assert meta["row_axis"] == ["throttle_pct", "%"] and meta["column_axis"] == ["speed_rpm", "rpm"]
@@ -544,10 +548,10 @@ def test_format_detection_from_content_without_suffix(tmp_path):
     ("broken.table", "<tableData><table>", ["broken.table", "XML"]),
     ("nozvalues.table", "<tableData><table><xAxis>1 2</xAxis><yAxis>1 2</yAxis></table></tableData>",
      ["nozvalues.table", "zValues"]),
-    ("count.table", "<tableData><table><xAxis cols='2'>1 2</xAxis><yAxis rows='2'>0 10</yAxis>"
-                    "<zValues>1 2 3</zValues></table></tableData>", ["count.table", "3 numbers"]),
-    ("noload.table", "<tableData><table><xAxis>1 2</xAxis><yAxis name='fuelLoad'>0 10</yAxis>"
-                     "<zValues>1 2 3 4</zValues></table></tableData>", ["noload.table", "load_kind"]),
+    ("count.table", ("<tableData><table><xAxis cols='2'>1 2</xAxis><yAxis rows='2'>0 10</yAxis>"
+                     "<zValues>1 2 3</zValues></table></tableData>"), ["count.table", "3 numbers"]),
+    ("noload.table", ("<tableData><table><xAxis>1 2</xAxis><yAxis name='fuelLoad'>0 10</yAxis>"
+                      "<zValues>1 2 3 4</zValues></table></tableData>"), ["noload.table", "load_kind"]),
     ("other.msq", "<msq xmlns='http://www.msefi.com/:msq'><versionInfo signature='MS3 Format 0566'/></msq>",
      ["other.msq", "neither"]),
     ("notxml.msq", "speeduino", ["notxml.msq", "XML"]),
