@@ -53,12 +53,14 @@ from xml.sax.saxutils import quoteattr
 import numpy as np
 import pandas as pd
 
-from .ecu_msq import _write_atomic, read_msq, write_msq
-from .ecu_table import LOAD_KINDS, EcuTable, resample
+from .ecu_msq import MsqReport, _write_atomic, read_msq, write_msq
+from .ecu_table import LOAD_KINDS, EcuTable, Resampled, resample, to_map_kpa
 
 __all__ = ["FORMATS", "TS_TABLE_NS", "write_table", "read_table", "read_axes", "Axes",
            "write_tunerstudio_table", "read_tunerstudio_table", "write_dcm", "read_dcm", "write_csv", "read_csv",
-           "compare", "plot_difference"]
+           "compare", "plot_difference",
+           # re-exported so that one import serves a caller
+           "EcuTable", "Resampled", "resample", "to_map_kpa", "write_msq", "read_msq", "MsqReport"]
 
 FORMATS = {"tunerstudio-table": ".table", "speeduino-msq": ".msq", "rusefi-msq": ".msq", "dcm": ".dcm", "csv": ".csv"}
 TS_TABLE_NS = "http://www.EFIAnalytics.com/:table"

@@ -489,9 +489,10 @@ def read_msq(path, table: str | None = None, *, load_kind: str | None = None) ->
 
     ``table`` is a kind (ignition / ve / lambda) or a constant name
     (``advTable1``, ``veTable``, ...); it may be omitted when the file holds
-    one known table.  The load kind comes from the axis units, else from the
-    firmware's load-source setting in the file (Speeduino ``algorithm`` /
-    ``ignAlgorithm``, rusEFI ``fuelAlgorithm``), else from ``load_kind``.
+    one known table.  The load kind comes from ``load_kind`` if given, else
+    from the axis units, else from the firmware's load-source setting in the
+    file (Speeduino ``algorithm`` / ``ignAlgorithm``; rusEFI
+    ``fuelAlgorithm``, which assumes no ``ignOverrideMode``/``veOverrideMode``).
     Values are as stored (Speeduino ``afrTable`` in AFR, ``lambdaTable`` in lambda).
     """
     p = Path(path)
