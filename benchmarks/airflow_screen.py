@@ -22,10 +22,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, simulate
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
 from engine_model.bench import load_bench
-from engine_model.calibrate_airflow import match_airflow
-from engine_model.calibrate_screen import CANDIDATES, rank_subsets, sensitivities, smooth_floor
+from engine_model.calibration.airflow import match_airflow
+from engine_model.calibration.screen import CANDIDATES, rank_subsets, sensitivities, smooth_floor
 
 SOLVER = SolverSettings(step_deg=1.0)
 # the match on main before this screen (exhaust, intake runner, restrictor Cd)

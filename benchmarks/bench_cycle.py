@@ -63,7 +63,8 @@ def _deviation(spec, solver, ops, rows) -> tuple[float, float]:
 
 def _wiebe_sweep(spec, solver, grid, check, label) -> None:
     """Time a Wiebe sweep at 9000 rpm WOT (consecutive rows reuse the converged state) and check it."""
-    from engine_model import OperatingPoint, simulate
+    from engine_model import OperatingPoint
+    from engine_model.sim import simulate
 
     sweep = pd.DataFrame({"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
                           "bdur_10_90_deg": [g[0] for g in grid], "wiebe_m": [g[1] for g in grid]})

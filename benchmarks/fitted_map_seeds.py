@@ -27,11 +27,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, doe, learning, simulate
-from engine_model.burnlaw import BurnLaw
-from engine_model.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, LoadTable, build_load_table
-from engine_model.mapmodel import MapModel
-from engine_model.maps import EcuGrid, build_maps
+from engine_model import SolverSettings, default_spec
+
+from engine_model import doe
+from engine_model import priors
+
+from engine_model.globalmodel import learning
+
+from engine_model.sim import simulate
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.globalmodel.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, LoadTable, build_load_table
+from engine_model.globalmodel.mapmodel import MapModel
+from engine_model.tables.build import EcuGrid, build_maps
 
 SOLVER = SolverSettings(step_deg=1.0)
 GRID = EcuGrid((30.0, 100.0), (7000.0, 12000.0))
@@ -110,7 +117,7 @@ def main():
     a.cache.mkdir(parents=True, exist_ok=True)
     spec, law = default_spec(), BurnLaw()
     table = load_table(spec, a.cache)
-    lam = {(t, n): float(doe.lambda_target(t)) for t in GRID.throttle_pct for n in GRID.speed_rpm}
+    lam = {(t, n): float(priors.lambda_target(t)) for t in GRID.throttle_pct for n in GRID.speed_rpm}
     sweeps = truth_sweeps(spec, law, lam, a.cache)
     pts = data_points(a.spark_hi)
     rows = []

@@ -19,9 +19,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model.burnlaw import BurnLaw
-from engine_model.maps import EcuGrid, build_maps
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.tables.build import EcuGrid, build_maps
 
 SOLVER = SolverSettings(step_deg=0.5)
 

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .prepare import OperatingPoint, SolverSettings
-from .simulate import simulate_point
+from engine_model.sim.prepare import OperatingPoint, SolverSettings
+from engine_model.sim.simulate import simulate_point
 
 
 def comparison_table(bench: pd.DataFrame, sim: pd.DataFrame, eta_trans: float) -> pd.DataFrame:
@@ -135,7 +135,7 @@ def write_report(folder, name: str, title: str, sections: list) -> tuple[Path, P
     """
     import html
 
-    from .io import write_text
+    from engine_model.io import write_text
 
     folder = Path(folder)
     md = [f"# {title}", ""]
@@ -190,7 +190,7 @@ def write_index(folder, title: str, summary: list[tuple[str, str]], sections: li
     """
     import html
 
-    from .io import write_text
+    from engine_model.io import write_text
 
     folder = Path(folder)
     esc = html.escape

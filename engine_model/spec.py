@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from .thermo import FuelSpec
+from engine_model.thermo import FuelSpec
 
 __all__ = [
     "Geometry", "ValveSet", "IntakeSpec", "ExhaustSpec", "HeatTransferSpec",

@@ -35,16 +35,17 @@ from pathlib import Path
 
 import pandas as pd
 
-from . import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
-from . import store
+from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
+from flows import store
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
 from distributed import as_completed as dask_as_completed  # noqa: E402
 
-from engine_model import SolverSettings, __version__, load_spec  # noqa: E402
-from engine_model.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
+from engine_model import SolverSettings, load_spec  # noqa: E402
+from engine_model.version import package_version  # noqa: E402
+from engine_model.sim.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
 from engine_model.doe import validate_plan  # noqa: E402
 from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 
@@ -155,7 +156,7 @@ class Progress:
 
 def _manifest_base(spec, spec_path, plan_hash, solver, chunk_size, n_points, n_chunks) -> dict:
     return {
-        "kind": "sweep", "package_version": __version__, "engine": spec.name, "spec": spec_path or "embedded",
+        "kind": "sweep", "package_version": package_version(), "engine": spec.name, "spec": spec_path or "embedded",
         "spec_hash": spec.spec_hash(), "plan_hash": plan_hash, "solver": solver.__dict__,
         "solver_hash": store.solver_hash(solver), "chunk_size": chunk_size, "points": n_points,
         "chunks": n_chunks,

@@ -7,7 +7,9 @@ compared at the crank as measured / eta_trans with eta_trans = 0.95 (paper).
 
 import pytest
 
-from engine_model import default_spec, simulate
+from engine_model import default_spec
+
+from engine_model.sim import simulate
 from engine_model.bench import load_bench
 
 ETA_TRANS = 0.95

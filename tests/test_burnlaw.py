@@ -6,7 +6,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model.burnlaw import BurnLaw, smooth_clip
+from engine_model.bench.burnlaw import BurnLaw, smooth_clip
 
 LAW = BurnLaw()
 

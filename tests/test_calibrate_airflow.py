@@ -6,11 +6,12 @@ model, far below the 1 % target), a 3 x 3 coarse grid.
 """
 
 import numpy as np
-import pandas as pd
 import pytest
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model.calibrate import Parameter, airflow_plan, ga_rel_pct, match_airflow, matching_burn
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model.calibration import Parameter, airflow_plan, ga_rel_pct, match_airflow, matching_burn
 from engine_model.bench import load_bench
 
 SOLVER = SolverSettings(step_deg=1.0)

@@ -8,8 +8,10 @@ measured; noise torque 0.5 %, airflow 1 % (propagated to power), exhaust T 5 K;
 import pandas as pd
 import pytest
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model import calibrate as cal
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model import calibration as cal
 
 ETA = 0.93
 

@@ -10,9 +10,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model import calibrate as cal
-from engine_model.identify import _branch_sign
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model import calibration as cal
+from engine_model.calibration.identify import _branch_sign
 
 SOLVER = SolverSettings(step_deg=1.0)
 TRUE_B, TRUE_M, ETA = 28.0, 5.3, 0.95

@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model.calibrate_airflow import Parameter
-from engine_model.calibrate_screen import CANDIDATES, Sensitivity, rank_subsets, sensitivities, smooth_floor
+from engine_model.calibration.airflow import Parameter
+from engine_model.calibration.screen import CANDIDATES, Sensitivity, rank_subsets, sensitivities, smooth_floor
 
 PARAMS = tuple(Parameter(f"sec.p{j}", -1.0, 1.0, 0.01) for j in range(5))
 SPEEDS = np.linspace(8000, 11000, 7)
@@ -91,7 +91,7 @@ def test_smooth_floor_known_cases():
 def test_sensitivities_central_differences_on_a_linear_model():
     """A fake evaluate whose airflow is linear in two spec values: the screen returns the exact derivative."""
     from engine_model.bench import load_bench
-    from engine_model.calibrate_airflow import ga_rel_pct
+    from engine_model.calibration.airflow import ga_rel_pct
 
     meas = load_bench()
     params = (Parameter("intake.restrictor_cd", 0.85, 0.99, 0.01), Parameter("intake.runner_length_m", 0.1, 0.35, 0.01))

@@ -101,7 +101,7 @@ def test_very_late_burn_is_a_result_not_a_failure(wot_9000):
 
 
 def test_failure_codes_name_the_volume():
-    from engine_model.simulate import _failure_text
+    from engine_model.sim.simulate import _failure_text
     assert _failure_text(201, 4) == "negative mass in cylinder 2"
     assert _failure_text(110, 4) == "temperature left the 150-4400 K range in exhaust port 3"
     assert _failure_text(212, 4) == "negative mass in plenum"
@@ -115,7 +115,7 @@ def _with_segments(spec, n_in, n_ex):
 @pytest.mark.parametrize("n_in,n_ex", [(1, 1), (2, 3), (4, 1)])
 def test_segmented_runners_keep_the_gas_volume(n_in, n_ex):
     """Splitting a runner into segments redistributes its gas volume, never creates or loses any."""
-    from engine_model.prepare import kernel_inputs
+    from engine_model.sim.prepare import kernel_inputs
     spec = _with_segments(default_spec(), n_in, n_ex)
     it, ex, ncyl = spec.intake, spec.exhaust, spec.geometry.n_cylinders
     ki = kernel_inputs(spec, OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4))
@@ -140,7 +140,7 @@ def test_segmented_runner_converges_in_the_number_of_segments():
 
 
 def test_runner_joint_failures_are_named():
-    from engine_model.simulate import _failure_text
+    from engine_model.sim.simulate import _failure_text
     # 4 cylinders, 2 intake and 3 exhaust segments: volumes 15..18 intake joints, 19..26 exhaust joints
     assert _failure_text(215, 4, 2, 3) == "negative mass in intake runner 1, joint 1"
     assert _failure_text(218, 4, 2, 3) == "negative mass in intake runner 4, joint 1"

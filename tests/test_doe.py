@@ -13,12 +13,14 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 
-from engine_model import doe, wiebe
+from engine_model import wiebe
+
+from engine_model import doe
+from engine_model.contracts import PLAN_COLUMNS
+from engine_model import priors
 from engine_model.bench import load_bench
-from engine_model.doe import (
-    bench_order, combustion_estimate, d_efficiency, d_optimal, feasibility, full_factorial, latin_hypercube,
-    load_plan, plan_hash, save_plan, sobol, spark_estimate, spark_sweeps, wiebe_grid, with_combustion,
-)
+from engine_model.doe import bench_order, d_efficiency, d_optimal, feasibility, full_factorial, latin_hypercube, load_plan, plan_hash, save_plan, sobol, spark_sweeps, wiebe_grid
+from engine_model.priors import combustion_estimate, spark_estimate, with_combustion
 
 BOUNDS3 = {"speed_rpm": (4000.0, 12000.0), "throttle_pct": (10.0, 90.0), "spark_deg_btdc": (20.0, 60.0)}
 
@@ -66,7 +68,7 @@ def test_priors_match_paper_anchor_and_table2():
     # vectorised, longer at part load, inside the paper's 20-50 deg window
     bb, mm = combustion_estimate(np.array([9000.0, 9000.0, 3000.0]), np.array([100.0, 5.0, 100.0]))
     assert bb.shape == (3,) and bb[1] > bb[0] and np.all((bb >= 20) & (bb <= 50))
-    assert doe.lambda_target(100.0) == 0.9 and doe.lambda_target(30.0) == 1.0
+    assert priors.lambda_target(100.0) == 0.9 and priors.lambda_target(30.0) == 1.0
 
 
 # --------------------------------------------------------------------------- generators
@@ -74,7 +76,7 @@ def test_priors_match_paper_anchor_and_table2():
 def test_full_factorial_grid_and_estimates():
     ff = full_factorial(speed_rpm=[4000, 8000, 12000], throttle_pct=[10, 50, 100])
     assert len(ff) == 9 and ff["point_id"].is_unique and ff["point_id"].iloc[0] == "ff-0001"
-    assert list(ff.columns[:5]) == list(doe.PLAN_COLUMNS)
+    assert list(ff.columns[:5]) == list(PLAN_COLUMNS)
     np.testing.assert_allclose(ff["spark_deg_btdc"], spark_estimate(ff["speed_rpm"], ff["throttle_pct"]))
     assert set(ff.loc[ff["throttle_pct"] == 100, "lambda"]) == {0.9}
     assert set(ff.loc[ff["throttle_pct"] == 10, "lambda"]) == {1.0}
@@ -94,7 +96,7 @@ def test_bounds_and_seed_reproducibility(gen):
     for col, (lo, hi) in BOUNDS3.items():
         assert a[col].between(lo, hi).all(), col
         assert a[col].max() - a[col].min() > 0.5 * (hi - lo), col   # spans the range
-    np.testing.assert_allclose(a["lambda"], doe.lambda_target(a["throttle_pct"]))  # unbounded: the prior
+    np.testing.assert_allclose(a["lambda"], priors.lambda_target(a["throttle_pct"]))  # unbounded: the prior
     pd.testing.assert_frame_equal(a, gen(n=n, bounds=BOUNDS3, seed=3))
     b = gen(n=n, bounds=BOUNDS3, seed=4)
     assert not np.allclose(a[list(BOUNDS3)].to_numpy(), b[list(BOUNDS3)].to_numpy())
@@ -192,7 +194,7 @@ def test_sweep_stops_one_step_past_torque_peak():
         assert g["stop_reason"].iloc[-1] == "mbt"
         # sparks est-12 ... est+2 rise in torque; est+4 is the first drop (peak at est+2.5)
         assert g["spark_deg_btdc"].iloc[-1] == pytest.approx(est + 4.0) and len(g) == 9
-        assert g["lambda"].iloc[0] == doe.lambda_target(thr)
+        assert g["lambda"].iloc[0] == priors.lambda_target(thr)
     assert ev.calls == [12, 12, 12]   # one model call per pair (warm-startable rows)
 
 

@@ -139,7 +139,7 @@ def test_runner_loss_factor_is_minor_losses_plus_dump_plus_darcy_friction():
     """
     from engine_model import OperatingPoint
     from engine_model.cycle import layout as L
-    from engine_model.prepare import FRICTION_VE_REF, kernel_inputs
+    from engine_model.sim.prepare import FRICTION_VE_REF, kernel_inputs
     spec = default_spec()
     it = spec.intake
     op = OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4)

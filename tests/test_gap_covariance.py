@@ -6,7 +6,8 @@ import pytest
 
 from engine_model.gap.covariance import (BURN_SCATTER_DEG, ERROR_MODELS, MODEL_ERROR, ErrorModel, burn_whitener,
                                         get_error_model, whiten_blocks, whiten_observations)
-from engine_model.gap.diagnose import UNCERTAINTY, diagnose
+from engine_model.gap.diagnose import diagnose
+from engine_model.gap.residuals import UNCERTAINTY
 
 from test_gap_diagnose import OUTS, _delta, _synthetic
 

@@ -8,10 +8,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import doe
+from engine_model import priors
 from engine_model.gap.api import choose_base
 from engine_model.gap.benchmark import SWEEP_STEP_DEG, SWEEP_STEPS, benchmark_plan
-from engine_model.gap.diagnose import _make_folds, operating_point_groups
+from engine_model.gap.fitting import make_folds, operating_point_groups
 from engine_model.bench import load_bench
 
 SPARK_BASE = ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
@@ -23,7 +23,7 @@ def _knock_model(limit_offset):
         n = p["speed_rpm"].to_numpy(float)
         t = p["throttle_pct"].to_numpy(float)
         s = p["spark_deg_btdc"].to_numpy(float)
-        lim = np.atleast_1d(doe.spark_estimate(n, t)) - limit_offset(n)
+        lim = np.atleast_1d(priors.spark_estimate(n, t)) - limit_offset(n)
         return pd.DataFrame({"knock_index": 1.0 + 0.1 * (s - lim)})
     return ev
 
@@ -41,7 +41,7 @@ def test_sweep_plan_layout_and_knock_backoff():
         s = g.sort_values("sweep_step")["spark_deg_btdc"].to_numpy()
         np.testing.assert_allclose(np.diff(s), SWEEP_STEP_DEG, atol=0.11)   # advancing, rounded to 0.1 deg
         n, t = g["speed_rpm"].iloc[0], g["throttle_pct"].iloc[0]
-        top = float(doe.spark_estimate(n, t))
+        top = float(priors.spark_estimate(n, t))
         # the operator backs off in 4 deg steps until the model's knock index is below 0.85:
         # limit 5 deg below MBT -> index 1.5 at MBT, 1.1 at -4, 0.7 at -8 -> top of the sweep at MBT - 8
         expect = 8.0 if n < 9000.0 else 0.0
@@ -69,12 +69,12 @@ def test_folds_keep_a_sweep_together():
                         "lambda": 0.9, "spark_deg_btdc": np.tile([30.0, 34.0, 38.0, 42.0], 6)})
     g = operating_point_groups(pts)
     assert len(np.unique(g)) == 6
-    folds = _make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1, groups=g)
+    folds = make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1, groups=g)
     for k in np.unique(g):
         assert np.unique(folds[g == k]).size == 1
     assert np.unique(folds).size == 5
     # without groups (scattered points) every point is its own unit, as before
-    f0 = _make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1)
+    f0 = make_folds(len(pts), np.ones(len(pts), bool), 5, seed=1)
     assert not all(np.unique(f0[g == k]).size == 1 for k in np.unique(g))
 
 
@@ -84,7 +84,7 @@ def test_base_gets_the_spark_slope_only_where_the_sparks_span_it():
     assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
     # scattered, no knock: sparks 0-6 deg below the prior (span < 6 deg) -> no spark term
     plan = benchmark_plan(32, evaluate=ev, design="sobol")
-    ds = plan["spark_deg_btdc"] - doe.spark_estimate(plan["speed_rpm"].to_numpy(), plan["throttle_pct"].to_numpy())
+    ds = plan["spark_deg_btdc"] - priors.spark_estimate(plan["speed_rpm"].to_numpy(), plan["throttle_pct"].to_numpy())
     assert np.ptp(ds) < 6.0
     assert choose_base(plan).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
     # scattered with knock back-offs below 9000 rpm: sparks spread over > 6 deg -> the spark term is carried
@@ -102,7 +102,7 @@ def test_scattered_points_keep_the_earlier_folds():
                         "lambda": 0.9, "spark_deg_btdc": 40.0})
     valid = np.ones(20, bool)
     valid[[3, 11]] = False
-    new = _make_folds(20, valid, 5, seed=0, groups=operating_point_groups(pts))
+    new = make_folds(20, valid, 5, seed=0, groups=operating_point_groups(pts))
     idx = np.flatnonzero(valid)
     old = np.full(20, -1)
     old[idx[np.random.default_rng(0).permutation(idx.size)]] = np.arange(idx.size) % 5
@@ -127,7 +127,7 @@ class _StandInBench:
 
 
 def test_bench_backoff_retards_knocking_points_until_they_run():
-    from engine_model.gap.benchmark import BENCH_BACKOFF_DEG, backoff_id, measure_with_backoff
+    from engine_model.gap.bench_procedure import BENCH_BACKOFF_DEG, backoff_id, measure_with_backoff
 
     plan = pd.DataFrame({"point_id": ["a", "b", "c", "d"], "speed_rpm": [6000.0, 7000.0, 9000.0, 6500.0],
                          "throttle_pct": [90.0] * 4, "lambda": [0.9] * 4,
@@ -177,7 +177,7 @@ def test_spark_slope_needs_enough_scattered_points():
         th = rng.uniform(30, 100, n)
         ds = np.where(np.arange(n) % 2 == 0, 3.2, -3.2)
         return pd.DataFrame({"speed_rpm": sp, "throttle_pct": th, "lambda": 0.9,
-                             "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th)) + ds})
+                             "spark_deg_btdc": np.atleast_1d(priors.spark_estimate(sp, th)) + ds})
     assert choose_base(table(8)).params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg")
     assert choose_base(table(16)).params == SPARK_BASE
 
@@ -305,7 +305,7 @@ def test_speed_curvature_only_when_asked_and_carried():
         sp = np.linspace(6000, 12500, n)
         th = rng.uniform(30, 100, n) if thr is None else np.full(n, thr)
         return pd.DataFrame({"speed_rpm": sp, "throttle_pct": th, "lambda": 0.9,
-                             "spark_deg_btdc": np.atleast_1d(doe.spark_estimate(sp, th))})
+                             "spark_deg_btdc": np.atleast_1d(priors.spark_estimate(sp, th))})
     curv = "bdur_speed2_deg_per_krpm2"
     assert curv not in choose_base(table(32)).params
     assert choose_base(table(32), speed_curvature=True).params[-1] == curv

@@ -12,7 +12,8 @@ import pandas as pd
 import pytest
 
 from engine_model.gap import get_effect
-from engine_model.gap.diagnose import NO_CANDIDATE, UNCERTAINTY, check_bench_outputs, diagnose, param_text
+from engine_model.gap.diagnose import NO_CANDIDATE, diagnose, param_text
+from engine_model.gap.residuals import UNCERTAINTY, check_bench_outputs
 from engine_model.gap.linear import BaseModel, Linearisation
 
 OUTS = ("air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k")

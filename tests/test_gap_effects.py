@@ -4,10 +4,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import default_spec, doe, simulate
+from engine_model import default_spec
+
+from engine_model import priors
+
+from engine_model.sim import simulate
 from engine_model.gap import EFFECTS, apply_effects, check_effects, get_effect, post_effects
-from engine_model.gap.effects import ETA_TRANS_BASE
-from engine_model.prepare import SolverSettings
+from engine_model.effects import ETA_TRANS_BASE
+from engine_model.sim.prepare import SolverSettings
 
 # 1 deg steps: the effects change outputs by percent, the step changes them < 1 % and
 # identically for the base and the perturbed run (the directions are what is tested).
@@ -19,9 +23,9 @@ OUTS = ["air_mass_flow_kg_h", "brake_torque_nm", "exhaust_temp_k", "fuel_mass_fl
 @pytest.fixture(scope="module")
 def wot():
     spec = default_spec()
-    pts = doe.with_combustion(pd.DataFrame({
+    pts = priors.with_combustion(pd.DataFrame({
         "point_id": [f"p{i}" for i in range(3)], "speed_rpm": SPEEDS, "throttle_pct": 100.0,
-        "spark_deg_btdc": doe.spark_estimate(SPEEDS, 100.0), "lambda": 0.9}))
+        "spark_deg_btdc": priors.spark_estimate(SPEEDS, 100.0), "lambda": 0.9}))
 
     def run(effects):
         res = simulate(spec, apply_effects(pts, effects, spec), SOLVER)
@@ -116,7 +120,7 @@ def test_linearise_matches_the_exact_transmission_sensitivity():
 
     spec = default_spec()
     pts = pd.DataFrame({"point_id": ["a", "b"], "speed_rpm": [7000.0, 11000.0], "throttle_pct": 100.0,
-                        "spark_deg_btdc": doe.spark_estimate(np.array([7000.0, 11000.0]), 100.0), "lambda": 0.9})
+                        "spark_deg_btdc": priors.spark_estimate(np.array([7000.0, 11000.0]), 100.0), "lambda": 0.9})
     lin = linearise(pts, lambda p: simulate(spec, p, SOLVER), BaseModel(params=("bdur_offset_deg",)),
                     effects=["transmission_efficiency", "friction"], spec=spec)
     assert lin.ok.all() and lin.n_simulations == 2 * 4   # ref, base step, 2 friction steps; transmission reuses ref

@@ -10,10 +10,12 @@ import pandas as pd
 import pytest
 
 from engine_model import doe
-from engine_model.burnlaw import BurnLaw
-from engine_model.identify import identification_plan, identify
-from engine_model.identify_sweep import SWEEP_COLUMNS, identify_sweeps, measured_mbt, sweep_plan
-from engine_model.virtual_bench import VirtualBench
+from engine_model import priors
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.calibration.identify import identification_plan, identify
+from engine_model.contracts import SWEEP_COLUMNS
+from engine_model.calibration.sweeps import identify_sweeps, measured_mbt, sweep_plan
+from engine_model.bench.virtual import VirtualBench
 
 OPS = pd.DataFrame({"throttle_pct": [20.0, 60.0], "speed_rpm": [9000.0, 12000.0]})
 OFFSETS = (-15.0, -10.0, -5.0, 0.0)
@@ -39,10 +41,10 @@ def test_sweep_plan_layout():
     assert all(tuple(a) <= tuple(b) for a, b in zip(keys[:-1], keys[1:]))
     for oid, g in plan.groupby("op_id"):
         r = OPS.iloc[int(oid[2:]) - 1]
-        s0 = doe.spark_estimate(r.speed_rpm, r.throttle_pct)
+        s0 = priors.spark_estimate(r.speed_rpm, r.throttle_pct)
         np.testing.assert_allclose(g["spark_deg_btdc"] - s0, OFFSETS)
         assert g["point_id"].tolist() == [f"{oid}-s{k}" for k in range(4)]
-        np.testing.assert_allclose(g["lambda"], doe.lambda_target(r.throttle_pct))
+        np.testing.assert_allclose(g["lambda"], priors.lambda_target(r.throttle_pct))
     with pytest.raises(ValueError, match="distinct spark offsets"):
         sweep_plan(OPS, (0.0, 5.0))
     with pytest.raises(ValueError, match="row 1, column 'speed_rpm'"):
@@ -95,7 +97,7 @@ def test_plan_rows_mismatch_is_a_clear_error(sweep_data):
 
 
 def test_choose_operating_points_respects_bounds_and_screen():
-    from engine_model.identify_sweep import choose_operating_points
+    from engine_model.calibration.sweeps import choose_operating_points
     b = {"throttle_pct": (20.0, 100.0), "speed_rpm": (6000.0, 12000.0)}
     ops = choose_operating_points(6, bounds=b)
     assert len(ops) == 6 and not ops.duplicated().any()

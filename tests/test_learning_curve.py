@@ -9,9 +9,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import doe
-from engine_model import learning as L
-from engine_model.burnlaw import BurnLaw
+from engine_model import priors
+from engine_model.globalmodel import learning as L
+from engine_model.bench.burnlaw import BurnLaw
 
 LAW = BurnLaw()
 
@@ -23,9 +23,9 @@ def test_design_plans_cover_the_space_around_mbt(design):
     off = p["spark_offset_deg"]
     assert off.between(-20, 5).all() and off.max() - off.min() > 15
     assert p["throttle_pct"].between(5, 100).all() and p["speed_rpm"].between(3000, 13000).all()
-    est = doe.spark_estimate(p["speed_rpm"].to_numpy(), p["throttle_pct"].to_numpy())
+    est = priors.spark_estimate(p["speed_rpm"].to_numpy(), p["throttle_pct"].to_numpy())
     np.testing.assert_allclose(p["spark_deg_btdc"] - est, off)
-    np.testing.assert_allclose(p["lambda"], doe.lambda_target(p["throttle_pct"].to_numpy()))
+    np.testing.assert_allclose(p["lambda"], priors.lambda_target(p["throttle_pct"].to_numpy()))
     if design == "grid":
         kt, kn, ks = L.grid_levels(24)
         assert len(p) == kt * kn * ks and p["throttle_pct"].nunique() == kt
@@ -56,7 +56,7 @@ def test_noisy_truth_statistics_and_masking():
 
 
 def test_phasing_noisy_truth_has_the_measured_error_structure():
-    from engine_model.mapmodel import ca50_offset_deg
+    from engine_model.globalmodel.mapmodel import ca50_offset_deg
     p = L.design_plan("sobol", 1024, seed=3)
     ident = L.phasing_noisy_truth(LAW, seed=1)(p)
     y = LAW.predict(p)

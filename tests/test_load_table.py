@@ -5,11 +5,12 @@ before the cycle work does; 16 simulations, a few seconds.
 """
 
 import numpy as np
-import pandas as pd
 import pytest
 
-from engine_model import default_spec, simulate
-from engine_model.load_table import LOAD_SOLVER, build_load_table, load_plan
+from engine_model import default_spec
+
+from engine_model.sim import simulate
+from engine_model.globalmodel.load_table import LOAD_SOLVER, build_load_table, load_plan
 
 THR, SPD = (20.0, 30.0, 50.0, 100.0), (5000.0, 7000.0, 9000.0, 12000.0)
 

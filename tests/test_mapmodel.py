@@ -6,9 +6,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import default_spec, doe
-from engine_model.burnlaw import BurnLaw
-from engine_model.mapmodel import MapModel, fit_map_model, kfold_indices
+from engine_model import default_spec
+
+from engine_model import doe
+from engine_model import priors
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.globalmodel.mapmodel import MapModel, fit_map_model, kfold_indices
 
 FACTORS3 = ("throttle_pct", "speed_rpm", "spark_deg_btdc")
 LAW = BurnLaw()
@@ -17,7 +20,7 @@ LAW = BurnLaw()
 def around_mbt(n, seed, lo=-20.0, hi=5.0):
     """Sobol points over throttle 5-100 % x 3000-13000 rpm, spark lo..hi deg around the MBT prior."""
     p = doe.sobol(n, bounds={"spark_deg_btdc": (lo, hi)}, seed=seed)
-    p["spark_deg_btdc"] = p["spark_deg_btdc"] + doe.spark_estimate(p["speed_rpm"].to_numpy(),
+    p["spark_deg_btdc"] = p["spark_deg_btdc"] + priors.spark_estimate(p["speed_rpm"].to_numpy(),
                                                                    p["throttle_pct"].to_numpy())
     return p
 
@@ -120,7 +123,7 @@ def test_save_load_round_trip_and_spec_check(fitted, tmp_path):
     with pytest.raises(ValueError, match="not found"):
         MapModel.load(tmp_path / "missing.json")
     # the table builder's loader reads it too, and refuses it for another engine
-    from engine_model import maps
+    from engine_model.tables import build as maps
     assert maps.load_model(path).chosen_ == m.chosen_
     with pytest.raises(ValueError, match="not for spec"):
         maps._check_model(maps.load_model(path), other)
@@ -177,7 +180,7 @@ def test_kfold_indices_partition():
 
 def _toy_load_table(spec_hash=None):
     """A load table with a known, steep-then-flat shape (no simulation): pi = 1 - 0.8 exp(-t/20) - 2e-5 n/1000."""
-    from engine_model.load_table import LoadTable
+    from engine_model.globalmodel.load_table import LoadTable
     t = (5.0, 10.0, 20.0, 30.0, 40.0, 60.0, 80.0, 100.0)
     n = (2000.0, 5000.0, 8000.0, 11000.0, 14000.0)
     v = [[1 - 0.8 * np.exp(-a / 20.0) - 0.02 * b / 1000.0 for b in n] for a in t]
@@ -185,7 +188,7 @@ def _toy_load_table(spec_hash=None):
 
 
 def test_load_table_interpolates_refuses_bad_grids_and_round_trips():
-    from engine_model.load_table import LoadTable
+    from engine_model.globalmodel.load_table import LoadTable
     lt = _toy_load_table()
     # PCHIP reproduces the nodes exactly and is monotone between them (the function is monotone in throttle)
     np.testing.assert_allclose(lt(np.array(lt.throttle_pct), 8000.0), lt.array[:, 2], rtol=1e-12)
@@ -300,7 +303,7 @@ def test_linear_extrapolation_continues_the_edge_slope_then_holds():
 def _ridge_identified(n, seed, sm=0.6):
     """Identifications whose m is off by N(0, sm) and whose BDUR10-90 trades along the iso-phasing ridge: the
     CA50 offset (ignition-to-CA50 angle) is the truth's exactly, BDUR10-90 follows from it and the noisy m."""
-    from engine_model.mapmodel import bdur_10_90_from_ca50_offset, ca50_offset_deg
+    from engine_model.globalmodel.mapmodel import bdur_10_90_from_ca50_offset, ca50_offset_deg
     p = around_mbt(n, seed)
     y = LAW.predict(p)
     off = ca50_offset_deg(y["bdur_10_90_deg"].to_numpy(), y["wiebe_m"].to_numpy())
@@ -310,7 +313,7 @@ def _ridge_identified(n, seed, sm=0.6):
 
 def test_ca50_offset_helpers_invert_each_other_and_match_wiebe():
     from engine_model import wiebe
-    from engine_model.mapmodel import bdur_10_90_from_ca50_offset, ca50_offset_deg
+    from engine_model.globalmodel.mapmodel import bdur_10_90_from_ca50_offset, ca50_offset_deg
     b, m = np.array([15.0, 24.5, 40.0]), np.array([2.0, 6.2, 7.0])
     off = ca50_offset_deg(b, m)
     # CA50 of a burn from a 35 deg BTDC spark lies at offset - 35 deg ATDC (eq 5 of the paper)
@@ -320,7 +323,7 @@ def test_ca50_offset_helpers_invert_each_other_and_match_wiebe():
 
 
 def test_phasing_parametrisation_keeps_the_phasing_when_errors_lie_on_the_ridge():
-    from engine_model.mapmodel import ca50_offset_deg
+    from engine_model.globalmodel.mapmodel import ca50_offset_deg
     train = _ridge_identified(64, 0)
     test = around_mbt(256, 99)
     y = LAW.predict(test)

@@ -15,11 +15,16 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import SolverSettings, default_spec, doe, simulate, wiebe
-from engine_model.maps import (EcuGrid, LambdaTable, MapSettings, PriorModel, _decide, build_maps,
+from engine_model import SolverSettings, default_spec, wiebe
+
+from engine_model import doe
+from engine_model import priors
+
+from engine_model.sim import simulate
+from engine_model.tables.build import (EcuGrid, LambdaTable, MapSettings, PriorModel, decide_cell, build_maps,
                                injection_time_ms, load_model, parse_breakpoints, second_differences, smooth_table,
                                write_maps)
-from engine_model.maps_io import TABLES, long_form
+from engine_model.tables.export import TABLES, long_form
 
 SOLVER = SolverSettings(step_deg=1.0)
 GRID = EcuGrid((20.0, 60.0, 100.0), (4000.0, 8000.0, 12000.0))
@@ -39,8 +44,8 @@ class SparkModel:
     def predict(self, points):
         self.calls.append(points.copy())
         n, t = points["speed_rpm"].to_numpy(float), points["throttle_pct"].to_numpy(float)
-        b, m = doe.combustion_estimate(n, t)
-        s0 = doe.spark_estimate(n, t)
+        b, m = priors.combustion_estimate(n, t)
+        s0 = priors.spark_estimate(n, t)
         b = np.atleast_1d(b) * (1.0 + 0.005 * (points["spark_deg_btdc"].to_numpy(float) - s0))
         return pd.DataFrame({"bdur_10_90_deg": b, "wiebe_m": np.atleast_1d(m)})
 
@@ -171,11 +176,11 @@ def test_smooth_table_moves_only_as_needed():
 def test_decide_zone1_and_knock_border():
     st = MapSettings(spark_min_deg_btdc=5.0)
     ev = pd.DataFrame({"spark_deg_btdc": [5.0, 9.0], "brake_torque_nm": [20.0, 22.0], "knock_index": [0.9, 1.0]})
-    kind, what = _decide(ev, st)
+    kind, what = decide_cell(ev, st)
     assert kind == "done" and what["status"] == "zone1" and what["raw"] == 5.0 and what["limited_by"] == "infeasible"
     # log-linear border: knock 0.5 at 10, 1.0 at 20 -> 0.85 at 10 + 10 ln(1.7)/ln(2) = 17.66 deg; asks just below
     ev = pd.DataFrame({"spark_deg_btdc": [10.0, 20.0], "brake_torque_nm": [20.0, 22.0], "knock_index": [0.5, 1.0]})
-    kind, what = _decide(ev, st)
+    kind, what = decide_cell(ev, st)
     assert kind == "need" and what[0] == pytest.approx(10 + 10 * math.log(1.7) / math.log(2) - 0.2, abs=1e-6)
 
 
@@ -382,22 +387,22 @@ def test_search_recovers_the_synthetic_engine():
     assert res.stats["points_per_cell"] < 14
 
 
-def test_bounded_quadratic_matches_scipy():
+def testbounded_quadratic_matches_scipy():
     from scipy.optimize import lsq_linear
 
-    from engine_model.maps_tables import _bounded_quadratic
+    from engine_model.tables.grid import bounded_quadratic
     rng = np.random.default_rng(7)
     m = rng.normal(size=(30, 12))
     y = rng.normal(size=30)
     lo, hi = np.full(12, -0.2), np.full(12, 0.3)
     ref = lsq_linear(m, y, bounds=(lo, hi), method="bvls").x
-    np.testing.assert_allclose(_bounded_quadratic(m.T @ m, m.T @ y, lo, hi), ref, atol=1e-8)
+    np.testing.assert_allclose(bounded_quadratic(m.T @ m, m.T @ y, lo, hi), ref, atol=1e-8)
 
 
 def test_fitted_map_model_file_drives_the_search(tmp_path):
     """A MapModel fitted on the hidden burn law, saved and loaded by load_model, supplies the per-spark Wiebe values."""
-    from engine_model.burnlaw import BurnLaw
-    from engine_model.mapmodel import MapModel
+    from engine_model.bench.burnlaw import BurnLaw
+    from engine_model.globalmodel.mapmodel import MapModel
 
     spec = default_spec()
     pts = doe.latin_hypercube(40, bounds={"spark_deg_btdc": (10.0, 60.0), "speed_rpm": (2000.0, 12000.0),
@@ -432,7 +437,7 @@ def test_truth_burn_law_mbt_within_2_deg_and_torque_within_1_pct():
     Against a 1-deg brute-force sweep with the same law: MBT within 2 deg where MBT sets the spark, and torque at
     the table value within 1 % of the best knock-safe torque of the sweep in every feasible cell.
     """
-    from engine_model.burnlaw import BurnLaw
+    from engine_model.bench.burnlaw import BurnLaw
 
     spec, law = default_spec(), BurnLaw()
     res = build_maps(spec, law, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
@@ -483,10 +488,10 @@ def fitted_map():
     prior, outside the planned -20..+5 deg; a flat continuation misses it by 3-4 deg even without noise).
     Returns the built map and, per feasible cell, a 1-deg brute-force sweep of the truth +-10 deg around the table.
     """
-    from engine_model import learning
-    from engine_model.burnlaw import BurnLaw
-    from engine_model.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, build_load_table
-    from engine_model.mapmodel import MapModel
+    from engine_model.globalmodel import learning
+    from engine_model.bench.burnlaw import BurnLaw
+    from engine_model.globalmodel.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, build_load_table
+    from engine_model.globalmodel.mapmodel import MapModel
 
     spec, law = default_spec(), BurnLaw()
     pts = doe.latin_hypercube(48, bounds={"spark_deg_btdc": (-20.0, 5.0), "speed_rpm": (5000.0, 13000.0),
@@ -570,7 +575,7 @@ def offset_engine(plan):
     (a faster burn): ln K gains 0.05 per deg of earlier CA50; at the prior's burn it is synthetic_engine."""
     out = synthetic_engine(plan)
     n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
-    b0, m0 = doe.combustion_estimate(n, t)
+    b0, m0 = priors.combustion_estimate(n, t)
     shift = _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
                                                                       plan["wiebe_m"].to_numpy(float))
     out["knock_index"] = out["knock_index"] * np.exp(KNOCK_PER_DEG_CA50 * shift)
@@ -637,7 +642,7 @@ def test_knock_uncertainty_zero_std_or_no_std_gives_no_retard():
 
 def test_knock_uncertainty_from_bdur_std_by_the_delta_method():
     c, _ = _offset_map(StdModel(bdur_std=1.5), 1.0)
-    b, m = doe.combustion_estimate(10000.0, 100.0)
+    b, m = priors.combustion_estimate(10000.0, 100.0)
     expect = float(_offset(b, m)) / float(b) * 1.5       # offset proportional to BDUR10-90 at fixed m
     assert c.loc[(100, 10000), "phasing_std_deg"] == pytest.approx(expect, rel=1e-3)
     assert c.loc[(100, 10000), "knock_uncertainty_retard_deg"] == pytest.approx(

@@ -55,10 +55,10 @@ def test_two_elements_in_series_match_the_dense_solve(seed, dt):
     rate = np.concatenate([rng.normal(0.0, 3e7, nvol), [0.0, 0.0]])
     for i1, s, j2 in ((0, 1, 2), (nvol, 0, 1), (1, 2, nvol + 1)):
         E = np.zeros((2, 7))
-        nw._lin_between(i1, s, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 0)
-        nw._lin_between(s, j2, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 1)
+        nw.lin_between(i1, s, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 0)
+        nw.lin_between(s, j2, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 1)
         ref = _dense((0, 1), E, props, vols, rate, nvol, dt)
-        nw._solve_two(0, 1, E, props, rate, nvol, dt)
+        nw.solve_two(0, 1, E, props, rate, nvol, dt)
         for e in (0, 1):
             assert E[e, 6] == pytest.approx(ref[e], rel=1e-9, abs=1e-12 * abs(E[e, 2]) + 1e-15)
 
@@ -71,9 +71,9 @@ def test_single_element_matches_the_dense_solve(seed):
     rate = np.concatenate([rng.normal(0.0, 3e7, nvol), [0.0, 0.0]])
     for i, j in ((0, 1), (1, 0), (0, nvol + 1), (nvol, 1)):
         E = np.zeros((1, 7))
-        nw._lin_between(i, j, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 0)
+        nw.lin_between(i, j, rng.uniform(1e-5, 5e-4), 0.0, props, 1e-4, E, 0)
         ref = _dense((0,), E, props, vols, rate, nvol, 1e-5)
-        nw._solve_one(0, E, props, rate, nvol, 1e-5)
+        nw.solve_one(0, E, props, rate, nvol, 1e-5)
         assert E[0, 6] == pytest.approx(ref[0], rel=1e-9, abs=1e-15)
 
 
@@ -87,8 +87,8 @@ def test_stiff_flow_follows_the_demand():
     vols[1] = 1e-7
     rate = np.array([0.0, -5e9, 0.0, 0.0])                # volume 1 expanding fast
     E = np.zeros((1, 7))
-    nw._lin_between(0, 1, 1e-4, 0.0, props, 1e-4, E, 0)
-    nw._solve_one(0, E, props, rate, nvol, 1e-3)
+    nw.lin_between(0, 1, 1e-4, 0.0, props, 1e-4, E, 0)
+    nw.solve_one(0, E, props, rate, nvol, 1e-3)
     c1 = props[1, vo.PR_GV] * props[0, vo.PR_RT]
     # the pressure of volume 1 then (almost) holds: flow ~ -rate_1 / c_1
     assert E[0, 6] == pytest.approx(5e9 / c1, rel=0.02)

@@ -6,7 +6,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model import RESULT_COLUMNS, default_spec, simulate
+from engine_model import RESULT_COLUMNS, default_spec
+
+from engine_model.sim import simulate
 from engine_model.bench import load_bench
 
 
@@ -91,7 +93,9 @@ def test_packaged_bench_data_is_table2():
 def test_spec_override_columns_change_only_their_rows():
     import dataclasses
 
-    from engine_model import default_spec, simulate
+    from engine_model import default_spec
+
+    from engine_model.sim import simulate
 
     spec = default_spec()
     base = {"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
@@ -109,7 +113,8 @@ def test_spec_override_columns_change_only_their_rows():
 
 
 def test_bad_spec_override_names_row_and_key():
-    from engine_model import default_spec, simulate
+    from engine_model import default_spec
+    from engine_model.sim import simulate
 
     base = {"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
             "bdur_10_90_deg": 24.0, "wiebe_m": 6.4}

@@ -15,9 +15,9 @@ from engine_model import SolverSettings
 import pytest
 
 from engine_model.bench import NoiseModel, VirtualBench, run_virtual_bench
-from engine_model.burnlaw import BurnLaw
+from engine_model.bench.burnlaw import BurnLaw
 from engine_model.doe import QUICK_SOLVER
-from engine_model.virtual_bench import MEASURED_COLUMNS, STATUSES
+from engine_model.contracts import BENCH_STATUSES as STATUSES, MEASURED_COLUMNS
 
 CONTRACT = ("point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "brake_torque_nm",
             "brake_power_kw", "air_mass_flow_kg_h", "exhaust_temp_k", "bsfc_g_kwh", "fuel_mass_flow_kg_h",

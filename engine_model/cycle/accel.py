@@ -21,7 +21,7 @@ Kernels here are pure functions over float arrays (numba, no NRT).
 
 from numba import njit
 
-from .layout import FASTMATH, NVCOL, V_U
+from engine_model.cycle.layout import FASTMATH, NVCOL, V_U
 
 U_SCALE = 1.0e6   # [J/kg] specific-energy scale that makes energies comparable to mass fractions
 

@@ -19,12 +19,12 @@ on all states.  The orifice elements (throttle, restrictor, valves, tailpipe)
 are evaluated, in each Heun stage, linearly implicitly: every flow is
 linearised in the two pressures and solved together with the pressure changes
 of the volumes it joins over one step, including the known pressure rates
-from the piston, wall heat and runner flows (``network._solve_one`` and
-``_solve_two``, closed forms; the coupled groups are [throttle body, plenum],
+from the piston, wall heat and runner flows (``network.solve_one`` and
+``solve_two``, closed forms; the coupled groups are [throttle body, plenum],
 [intake port k, cylinder k, exhaust port k] and [collector]).  This is smooth (no explicit/implicit switch) and stays
 correct where the square-root law is stiff (nearly equal pressures, the small
 cylinder volume during valve overlap).  Quasi-steady runners (inertia off) use
-a single-element flow, implicit where stiff (``network._flow_between``).  Each
+a single-element flow, implicit where stiff (``network.flow_between``).  Each
 flow leaves one volume and enters another with
 the same mass and enthalpy, so mass and energy are conserved by construction;
 the cycle-level balances reported in ``out`` therefore measure how periodic the
@@ -36,14 +36,14 @@ import math
 import numpy as np
 from numba import njit
 
-from ..thermo import enthalpy_coeffs_into
-from .accel import mpe, pack_state, state_weights, unpack_state
-from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
+from engine_model.thermo import enthalpy_coeffs_into
+from engine_model.cycle.accel import mpe, pack_state, state_weights, unpack_state
+from engine_model.cycle.cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
                        woschni_velocity)
-from .layout import *  # noqa: F401,F403  (index constants)
-from .network import _add_rate, _lin_between, _orifice_between, _solve_one, _solve_two
-from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
-from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer, _transfer_as
+from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
+from engine_model.cycle.network import add_rate, lin_between, orifice_between, solve_one, solve_two
+from engine_model.cycle.volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
+from engine_model.cycle.volumes import eval_props, iv_transfer, set_ambient, transfer, transfer_as
 
 RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence estimate
 # [-] slowest cycle-to-cycle ratio assumed until an extrapolation has measured one:
@@ -137,7 +137,7 @@ def _slug_flow(ipl, dn, m, mr, dmr, b, slug_v, yb_a, yb_m, yb_p, hb, dt, props, 
         ya = phi * s_a * inv + (1.0 - phi) * yb_a
         ym = phi * s_m * inv + (1.0 - phi) * yb_m
         yp = phi * s_p * inv + (1.0 - phi) * yb_p
-        _transfer_as(ipl, dn, m, ya, ym, yp, phi * hs + (1.0 - phi) * hb, dvol)
+        transfer_as(ipl, dn, m, ya, ym, yp, phi * hs + (1.0 - phi) * hb, dvol)
     else:
         dmr[b + SL_A] = -m * props[dn, PR_YA]
         dmr[b + SL_M] = -m * props[dn, PR_YM]
@@ -151,7 +151,7 @@ def _slug_flow(ipl, dn, m, mr, dmr, b, slug_v, yb_a, yb_m, yb_p, hb, dt, props, 
             dmr[b + SL_M] -= r * s_m
             dmr[b + SL_P] -= r * s_p
             dmr[b + SL_H] -= r * ms * hs
-        _transfer_as(ipl, dn, m, props[dn, PR_YA], props[dn, PR_YM], props[dn, PR_YP], props[dn, PR_H], dvol)
+        transfer_as(ipl, dn, m, props[dn, PR_YA], props[dn, PR_YM], props[dn, PR_YP], props[dn, PR_H], dvol)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -200,7 +200,7 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
     for k in range(ncyl):
         li = (s_step + stage - offs[k]) % nstep
         vcur[k] = tab[T_V, li]
-    code = _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
+    code = eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
     if code != 0:
         return code
     dvol[:, :] = 0.0
@@ -262,13 +262,13 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
                     rho = props[up, PR_RHO] if m >= 0.0 else props[dn, PR_RHO]
                     dmr[idx] = c_dp * (props[up, PR_P] - props[dn, PR_P]) - c_loss * m * abs(m) / rho
                 else:
-                    m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
+                    m = orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
                     dmr[idx] = 0.0
                 if slug_on and side == 0 and j == 0:
                     _slug_flow(up, dn, m, mr, dmr, nflow + NSLUG * k, slug_v, yb_a, yb_m, yb_p, hb, dt, props, dvol)
                 else:
-                    _transfer(up, dn, m, nvol, props, dvol)
-                _add_rate(up, dn, m, nvol, props, vcur, rate)
+                    transfer(up, dn, m, nvol, props, dvol)
+                add_rate(up, dn, m, nvol, props, vcur, rate)
             jnt += nseg - 1
 
     # ---- exhaust collector -> ambient.  The tailpipe beyond the collector is
@@ -334,12 +334,12 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
     # ---- orifice elements.  Those outside the network (legacy treatment) first,
     # so that their flows enter the network solve as known pressure rates.
     # element rows: 0 throttle, 1 restrictor, 2 tailpipe, 3+2k intake valve k, 4+2k exhaust valve k
-    _lin_between(amb, itb, par[P_THR_CDA], 0.0, props, eps, E, 0)
-    _lin_between(itb, ipl, par[P_RES_CDA], par[P_RES_REC], props, eps, E, 1)
-    _lin_between(icol, tpipe, par[P_TP_CDA], 0.0, props, eps, E, 2)
+    lin_between(amb, itb, par[P_THR_CDA], 0.0, props, eps, E, 0)
+    lin_between(itb, ipl, par[P_RES_CDA], par[P_RES_REC], props, eps, E, 1)
+    lin_between(icol, tpipe, par[P_TP_CDA], 0.0, props, eps, E, 2)
     # network solves: [throttle body, plenum], [collector], [intake port, cylinder, exhaust port] per cylinder
-    _solve_two(0, 1, E, props, rate, nvol, dt)
-    _solve_one(2, E, props, rate, nvol, dt)
+    solve_two(0, 1, E, props, rate, nvol, dt)
+    solve_one(2, E, props, rate, nvol, dt)
     for k in range(ncyl):
         le = (s_step + stage - offs[k]) % nstep
         e = 3 + 2 * k
@@ -348,30 +348,30 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
         aiv = tab[T_AIV, le]
         aev = tab[T_AEV, le]
         if aiv > 0.0:
-            _lin_between(ncyl + k, k, aiv, 0.0, props, eps, E, e)
+            lin_between(ncyl + k, k, aiv, 0.0, props, eps, E, e)
         if aev > 0.0:
-            _lin_between(k, 2 * ncyl + k, aev, 0.0, props, eps, E, e + 1)
+            lin_between(k, 2 * ncyl + k, aev, 0.0, props, eps, E, e + 1)
         if aiv > 0.0 and aev > 0.0:
-            _solve_two(e, e + 1, E, props, rate, nvol, dt)
+            solve_two(e, e + 1, E, props, rate, nvol, dt)
         elif aiv > 0.0:
-            _solve_one(e, E, props, rate, nvol, dt)
+            solve_one(e, E, props, rate, nvol, dt)
         elif aev > 0.0:
-            _solve_one(e + 1, E, props, rate, nvol, dt)
+            solve_one(e + 1, E, props, rate, nvol, dt)
 
     # ---- apply the flows (each leaves one volume and enters another, same mass and enthalpy)
     mth = E[0, 6]
-    _transfer(amb, itb, mth, nvol, props, dvol)
+    transfer(amb, itb, mth, nvol, props, dvol)
     acc[A_AIR] += mth * (1.0 if mth >= 0.0 else props[itb, PR_YA])   # air only: what an airflow meter sees
     acc[A_MIN] += mth                                                 # all species: for the mass balance
     acc[A_HAIR] += mth * (props[amb, PR_H] if mth >= 0.0 else props[itb, PR_H])
     mres = E[1, 6]
     if mres < 0.0 and slug_on:
         # gas pushed back through the restrictor comes from the plenum's bulk, not from the runners' slugs
-        _transfer_as(itb, ipl, mres, yb_a, yb_m, yb_p, hb, dvol)
+        transfer_as(itb, ipl, mres, yb_a, yb_m, yb_p, hb, dvol)
     else:
-        _transfer(itb, ipl, mres, nvol, props, dvol)
+        transfer(itb, ipl, mres, nvol, props, dvol)
     mtp = E[2, 6]
-    _transfer(icol, tpipe, mtp, nvol, props, dvol)
+    transfer(icol, tpipe, mtp, nvol, props, dvol)
     acc[A_OUT] += mtp
     acc[A_HOUT] += mtp * props[icol, PR_H]
     for k in range(ncyl):
@@ -379,10 +379,10 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
         e = 3 + 2 * k
         m = E[e, 6]
         if m != 0.0:
-            _iv_transfer(ncyl + k, k, m, far, fuel_c, nvol, props, dvol, acc)
+            iv_transfer(ncyl + k, k, m, far, fuel_c, nvol, props, dvol, acc)
         m = E[e + 1, 6]
         if m != 0.0:
-            _transfer(k, 2 * ncyl + k, m, nvol, props, dvol)
+            transfer(k, 2 * ncyl + k, m, nvol, props, dvol)
             if m > 0.0:
                 acc[base + AC_EXM] += m
                 acc[base + AC_EXMT] += m * props[k, PR_T]
@@ -454,7 +454,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     hcoeffs = np.empty((3, 2, 6))      # enthalpy-polynomial form of ``coeffs`` for the property evaluation
     enthalpy_coeffs_into(coeffs, hcoeffs)
     props = np.zeros((nvol + 2, NPR))   # + ambient, + tailpipe pseudo-volume
-    _set_ambient(props, nvol, par, coeffs, rsp)
+    set_ambient(props, nvol, par, coeffs, rsp)
     vcur = vfix.copy()
     vol1 = np.empty_like(vol)
     d0 = np.empty_like(vol)

@@ -14,7 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .layout import FASTMATH
+from engine_model.cycle.layout import FASTMATH
 
 
 # Every gas here has gamma >= 1.05, whose critical pressure ratio is <= 0.595:

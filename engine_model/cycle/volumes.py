@@ -2,8 +2,8 @@
 
 from numba import njit
 
-from ..thermo import cp_mass, h_mass, mixture_tcphr
-from .layout import *  # noqa: F401,F403  (index constants)
+from engine_model.thermo import cp_mass, h_mass, mixture_tcphr
+from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
 
 # property columns of the scratch array ``props``
 # PR_S = gamma R T / V is the pressure change per kg of the volume's own gas
@@ -22,7 +22,7 @@ AC_N = 6
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
+def eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
     """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
     for k in range(nvol):
         ma = vol[k, V_MA]
@@ -60,7 +60,7 @@ def _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _transfer(i, j, mdot, nvol, props, dvol):
+def transfer(i, j, mdot, nvol, props, dvol):
     """Move ``mdot`` [kg/s] from i to j (negative: j to i) with the upstream composition and enthalpy."""
     u = i if mdot >= 0.0 else j
     fa = mdot * props[u, PR_YA]
@@ -80,7 +80,7 @@ def _transfer(i, j, mdot, nvol, props, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
+def transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
     """Move ``mdot`` [kg/s] from volume i to volume j with the given mass fractions and specific enthalpy [J/kg]."""
     fa = mdot * ya
     fm = mdot * ym
@@ -97,7 +97,7 @@ def _transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
+def iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
     """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
     if m >= 0.0:
         ya = props[ip, PR_YA]
@@ -113,11 +113,11 @@ def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
         acc[A_FUEL] += mf
         acc[A_HFUEL] += mf * hf
     else:
-        _transfer(ip, k, m, nvol, props, dvol)
+        transfer(ip, k, m, nvol, props, dvol)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _set_ambient(props, amb, par, coeffs, rsp):
+def set_ambient(props, amb, par, coeffs, rsp):
     t = par[P_TAMB]
     c = coeffs[SP_A]
     cp = cp_mass(c, t)

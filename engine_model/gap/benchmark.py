@@ -22,7 +22,6 @@ re-simulation with the named effect at its fitted parameters.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -30,13 +29,15 @@ from typing import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from .. import doe
-from ..prepare import SolverSettings
-from ..spec import EngineSpec, default_spec
-from .covariance import DEFAULT_ERROR_MODEL
-from .diagnose import diagnose
-from .effects import EFFECTS, get_effect
-from .linear import BaseModel, calibrate_base, linearise
+from engine_model import doe
+from engine_model.sim.prepare import SolverSettings
+from engine_model.spec import EngineSpec, default_spec
+from engine_model.gap.covariance import DEFAULT_ERROR_MODEL
+from engine_model.gap.diagnose import diagnose
+from engine_model.effects import EFFECTS, get_effect
+from engine_model.gap.bench_procedure import BENCH_SOLVER, knock_backoff, measure_with_backoff
+from engine_model.gap.design import discrimination_plan
+from engine_model.gap.linear import BaseModel, calibrate_base, linearise
 
 __all__ = ["BENCHMARK_COLUMNS", "benchmark_plan", "run_benchmark", "summarise_benchmark", "ool_bump",
            "BENCH_SOLVER", "OOL_EFFECT", "DEFAULT_DESIGN"]
@@ -45,9 +46,6 @@ __all__ = ["BENCHMARK_COLUMNS", "benchmark_plan", "run_benchmark", "summarise_be
 BENCHMARK_COLUMNS = ("effect_withheld", "magnitude", "seed", "effect_named", "top1_correct", "top3_correct",
                      "gap_before", "gap_after", "gap_reduction_pct")
 
-#: Solver of the benchmark's truth and model (the same for both, so the comparison is about physics, not
-#: discretisation; 1 deg steps are 2x cheaper than 0.5 deg and change outputs < 1 %).
-BENCH_SOLVER = SolverSettings(step_deg=1.0)
 
 #: Design of ``run_benchmark`` and ``mbc gap-benchmark`` when none is given: the model-discrimination plan
 #: (``mbc gap-plan``), chosen from the base model alone.  With the burn-scatter error model and the curved
@@ -98,22 +96,6 @@ SWEEP_STEPS = 4
 SWEEP_STEP_DEG = 4.0
 
 
-def _knock_backoff(ops: pd.DataFrame, spark_top: np.ndarray, ev: Callable, knock_target: float,
-                   retards: Sequence[float]) -> np.ndarray:
-    """Retard [deg] from ``spark_top`` an operator backs off to where the model (prior burn) predicts no knock."""
-    frames = []
-    for k, ret in enumerate(retards):
-        p = doe.with_combustion(ops.assign(spark_deg_btdc=spark_top - ret))
-        p["point_id"] = p["point_id"].astype(str) + f"#r{k}"
-        frames.append(p)
-    res = ev(pd.concat(frames, ignore_index=True))
-    ki = pd.to_numeric(res["knock_index"], errors="coerce").to_numpy(float).reshape(len(retards), len(ops))
-    chosen = np.full(len(ops), float(retards[-1]))
-    for i in range(len(ops)):
-        okk = np.flatnonzero(ki[:, i] < knock_target)
-        if okk.size:
-            chosen[i] = retards[int(okk[0])]
-    return chosen
 
 
 def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
@@ -145,7 +127,7 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
         ``point_id, speed_rpm, throttle_pct, spark_deg_btdc, lambda`` + ``op_id`` (operating point of the
         row), ``knock_retard_deg`` (back-off from the MBT prior's top of the sweep) and design columns.
     """
-    from ..simulate import simulate
+    from engine_model.sim.simulate import simulate
 
     if design not in DESIGNS:
         raise ValueError(f"benchmark_plan: design {design!r} unknown; valid: {list(DESIGNS)}")
@@ -153,15 +135,13 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     ev = evaluate or (lambda p: simulate(spec, p, solver))
     bounds = {"speed_rpm": (6000.0, 12500.0), "throttle_pct": (30.0, 100.0)}
     if design == "discriminating":
-        from .design import discrimination_plan
-
         plan, _ = discrimination_plan(n, spec, ev, seed=seed)
         return plan
     if design == "sobol":
         plan = doe.sobol(n, bounds=bounds, seed=seed)
         rng = np.random.default_rng(seed + 11)
         spark0 = plan["spark_deg_btdc"].to_numpy(float) - rng.uniform(0.0, 6.0, len(plan))
-        chosen = _knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
+        chosen = knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
         plan["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
         plan["knock_retard_deg"] = chosen
         plan["op_id"] = plan["point_id"]
@@ -175,7 +155,7 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
         raise ValueError(f"benchmark_plan: n = {n} gives fewer than 2 operating points of {sweep_steps} sparks")
     ops = doe.sobol(n_ops, bounds=bounds, seed=seed)
     top = ops["spark_deg_btdc"].to_numpy(float)
-    chosen = _knock_backoff(ops, top, ev, knock_target, retards)
+    chosen = knock_backoff(ops, top, ev, knock_target, retards)
     rows = []
     for i, op in ops.iterrows():
         for k in range(sweep_steps):
@@ -187,62 +167,10 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     return pd.DataFrame(rows)
 
 
-#: Operator's knock back-off on the bench: a point that knocks is re-run this much later [deg CA], at most
-#: :data:`BENCH_BACKOFF_STEPS` times (the plan's own back-off steps of 4 deg; the paper's sweeps stop "at
-#: MBT or knock" [P]).  Without it the truth bench lost 7 of the 32 points (all below 7800 rpm, where
-#: blow-by, knock retard and the combustion losses differ most from a driveline loss) to knock aborts.
-BENCH_BACKOFF_DEG = 4.0
-BENCH_BACKOFF_STEPS = 3
 
 
-def backoff_id(point_id: str, retard_deg: float) -> str:
-    """Point id of a plan point re-run ``retard_deg`` later on the bench (``'<id>~r<deg>'``)."""
-    return f"{point_id}~r{retard_deg:g}"
 
 
-def measure_with_backoff(bench, plan: pd.DataFrame, evaluate: Callable, step_deg: float = BENCH_BACKOFF_DEG,
-                         max_steps: int = BENCH_BACKOFF_STEPS) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Run ``plan`` on ``bench`` as an operator does: a point aborted for knock is re-run ``step_deg`` later.
-
-    The model-based back-off of :func:`benchmark_plan` cannot know the engine's real knock limit; on the
-    bench the operator retards a knocking point until it runs (at most ``max_steps`` times) and logs the
-    spark it ran at.  A point that still knocks stays flagged (``knock_abort``).
-
-    Parameters
-    ----------
-    bench : VirtualBench
-        Anything with ``measure(plan, evaluate)``.
-    plan : DataFrame
-        Needs ``point_id`` and ``spark_deg_btdc``.
-    evaluate : callable
-
-    Returns
-    -------
-    plan_run : DataFrame
-        The plan as run: backed-off points with the later spark and the id :func:`backoff_id`, and
-        ``bench_backoff_deg`` (0 where the plan's spark ran).
-    measured : DataFrame
-        The bench rows, same order and ids as ``plan_run``.
-    """
-    run = plan.reset_index(drop=True).copy()
-    run["point_id"] = run["point_id"].astype(str)
-    orig_ids = run["point_id"].to_numpy().copy()
-    run["bench_backoff_deg"] = 0.0
-    meas = bench.measure(run, evaluate).reset_index(drop=True)
-    for k in range(1, max_steps + 1):
-        knock = (meas["status"].astype(str) == "knock_abort").to_numpy()
-        if not knock.any():
-            break
-        idx = np.flatnonzero(knock)
-        run.loc[idx, "spark_deg_btdc"] = run.loc[idx, "spark_deg_btdc"].to_numpy(float) - step_deg
-        run.loc[idx, "bench_backoff_deg"] = k * step_deg
-        run.loc[idx, "point_id"] = [backoff_id(orig_ids[i], k * step_deg) for i in idx]
-        redo = bench.measure(run.loc[idx].reset_index(drop=True), evaluate)
-        redo.index = idx
-        meas = meas.drop(index=idx)
-        meas = pd.concat([meas, redo]).sort_index()
-        meas = meas.reset_index(drop=True)
-    return run, meas
 
 
 @dataclass
@@ -317,11 +245,11 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         union of the plans as run), per case (``(effect, magnitude)`` keys) ``plans`` as run, noiseless
         ``truth`` and ``linearisations``, and ``diagnoses`` per ``(effect, magnitude, seed)``.
     """
-    from ..simulate import simulate
-    from ..virtual_bench import NoiseModel, VirtualBench, apply_noise
-    from ..burnlaw import BurnLaw
+    from engine_model.sim.simulate import simulate
+    from engine_model.bench.virtual import NoiseModel, VirtualBench, apply_noise
+    from engine_model.bench.burnlaw import BurnLaw
 
-    from .api import choose_base
+    from engine_model.gap.api import choose_base
 
     say = progress or (lambda s: None)
     spec = default_spec() if spec is None else spec
@@ -421,8 +349,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
 
 def _verify(plans, lins, truth, diags, names, seed, ev, spec) -> list[dict]:
     """Nonlinear re-simulation of the named effect at its fitted parameters (``seed``, magnitude 1)."""
-    from .effects import apply_effects, check_effects, post_effects
-    from .linear import model_outputs
+    from engine_model.effects import apply_effects, check_effects, post_effects
+    from engine_model.gap.linear import model_outputs
 
     jobs = []
     for e in names:

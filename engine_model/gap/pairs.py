@@ -34,8 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .diagnose import GapDiagnosis, _heldout_cols, _solve
-from .effects import get_effect
+from engine_model.gap.diagnose import GapDiagnosis
+from engine_model.gap.fitting import heldout_columns, solve_bounded
+from engine_model.effects import get_effect
 
 __all__ = ["PairSearch", "best_pair", "NO_PAIR"]
 
@@ -77,7 +78,7 @@ def _heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray
     """Held-out chi2 of the columns ``cols`` for many residual vectors at once, without parameter bounds.
 
     For a fixed design the K-fold held-out residuals are linear in the data: on fold f they are
-    ``r_test - A_test (A_train' A_train + lam I)^-1 A_train' r_train`` (the ridge of ``diagnose._solve``).
+    ``r_test - A_test (A_train' A_train + lam I)^-1 A_train' r_train`` (the ridge of ``diagnose.solve_bounded``).
     The pure-noise Monte Carlo uses this closed form (one small solve per fold and column set instead
     of one per draw).  Bounds are left out: pure-noise fits lie well inside the documented ranges, and
     where one would not, the unbounded fit removes more noise, so the thresholds err on the high side.
@@ -182,8 +183,8 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
     rows = []
     for a, b in pairs:
         cols = _pair_cols(prob, a, b)
-        ho = _heldout_cols(prob, cols, folds)[0]
-        x = _solve(prob.a[:, cols], prob.r, prob.lo[cols], prob.hi[cols])
+        ho = heldout_columns(prob, cols, folds)[0]
+        x = solve_bounded(prob.a[:, cols], prob.r, prob.lo[cols], prob.hi[cols])
         txt, bound = _params(lin, prob, cols, x)
         red = 100.0 * (ho0 - ho) / excess0 if excess0 > 0 else 0.0
         rows.append({"effect_a": a, "effect_b": b, "params": txt, "heldout_chi2": ho,
