@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 
-# Keep Prefect quiet, offline and inside the project (shared/STACK-NOTES.md).
+# Keep Prefect quiet, offline and inside the project (docs/stack.md).
 export PREFECT_HOME := $(CURDIR)/.prefect
 export DO_NOT_TRACK := 1
 export PREFECT_SERVER_ANALYTICS_ENABLED := false

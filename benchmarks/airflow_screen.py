@@ -4,10 +4,10 @@
     .venv/bin/python benchmarks/airflow_screen.py match NAME1,NAME2,NAME3 [--start NAME=V ...] [--nfev 12]
 
 ``screen``: Ga_REL at the base parameter set and central differences for every
-candidate of :data:`engine_model.calibrate_screen.CANDIDATES` (one batch,
+candidate of :data:`engine_model.calibration.screen.CANDIDATES` (one batch,
 2 processes), the data's smooth-curve floor, and every triple ranked by its
 linearised minimax / least-squares fit.  ``match``: the real bounded least
-squares (:func:`engine_model.calibrate_airflow.match_airflow`) for one triple,
+squares (:func:`engine_model.calibration.airflow.match_airflow`) for one triple,
 started at the base (no coarse grid), in-process on 2 processes, 1 deg step.
 """
 

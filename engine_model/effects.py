@@ -22,7 +22,7 @@ already applied (the bench contract: torque behind the gearbox).
 
 Example
 -------
->>> from engine_model.gap.effects import apply_effects, post_effects
+>>> from engine_model.effects import apply_effects, post_effects
 >>> fx = {"heat_transfer": {"factor": 1.3}, "transmission_efficiency": {"eta": 0.92}}
 >>> pts = apply_effects(points, fx)            # doctest: +SKIP
 >>> res = post_effects(simulate(spec, pts), fx)  # doctest: +SKIP

@@ -5,7 +5,7 @@
 * Chunks are consecutive rows of the plan (the simulator reuses the converged
   state between consecutive rows of one operating condition, so a Wiebe grid
   keeps its points together), sized so that a Dask task runs a few seconds
-  (Prefect's per-task overhead is ~0.1 s; shared/STACK-NOTES.md, trap 2).
+  (Prefect's per-task overhead is ~0.1 s; docs/stack.md).
 * The driver (this flow) writes each part atomically as soon as its chunk
   finishes; workers only compute and return a small DataFrame, so no shared
   file system is needed between the driver and a remote cluster.
@@ -19,7 +19,7 @@
   flow ends Failed so that a re-run computes it.
 * The task calls ``engine_model.simulate`` from the installed package, which
   reaches the numba kernels through their module, so workers load compiled
-  kernels from numba's on-disk cache instead of recompiling (STACK-NOTES, trap 3).
+  kernels from numba's on-disk cache instead of recompiling (docs/stack.md).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@
 ``prefect_api``: one real Prefect API server (Prefect's test harness: a
 uvicorn subprocess on a temporary database) for the whole test session,
 exported through ``PREFECT_API_URL`` so that Dask worker processes and ``mbc``
-subprocesses started by a test talk to the same server (shared/STACK-NOTES.md).
+subprocesses started by a test talk to the same server (docs/stack.md).
 """
 
 from __future__ import annotations

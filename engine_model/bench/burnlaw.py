@@ -2,10 +2,10 @@
 
 :class:`BurnLaw` gives the 10-90 % burn duration and the Wiebe shape factor
 of an operating point as smooth functions of throttle, speed, spark advance
-and lambda.  The virtual bench (:mod:`engine_model.virtual_bench`) runs the
+and lambda.  The virtual bench (:mod:`engine_model.bench.virtual`) runs the
 cycle model with these values; the calibration chain has to find them again
 from the measured-like outputs, and the global map-wide model
-(:mod:`engine_model.mapmodel`) has to learn them over the map.  Both objects
+(:mod:`engine_model.globalmodel.mapmodel`) has to learn them over the map.  Both objects
 share one protocol, ``predict(points) -> DataFrame[bdur_10_90_deg, wiebe_m]``,
 so the truth and a fitted model are interchangeable in the table-building code.
 

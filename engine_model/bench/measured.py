@@ -1,6 +1,6 @@
 """Bench data: the packaged Table 2 of the reference paper and a validating loader for the bench contract.
 
-Contract (DESIGN.md): required ``point_id, speed_rpm, throttle_pct,
+Contract (:mod:`engine_model.contracts`): required ``point_id, speed_rpm, throttle_pct,
 spark_deg_btdc, lambda, brake_torque_nm, brake_power_kw, air_mass_flow_kg_h``;
 optional ``exhaust_temp_k, bsfc_g_kwh, fuel_mass_flow_kg_h, knock`` and
 ``at_mbt`` (the spark was at MBT, i.e. CA50 8-10 deg ATDC applies).

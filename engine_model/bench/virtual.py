@@ -1,9 +1,9 @@
 """The virtual test bench: a truth engine that answers a DOE plan with measured-like rows.
 
 Real dyno time is scarce; the virtual bench stands in for it.  It is the cycle
-model run with a *hidden* combustion law (:class:`engine_model.burnlaw.BurnLaw`),
+model run with a *hidden* combustion law (:class:`engine_model.bench.burnlaw.BurnLaw`),
 optional extra physical effects switched on by name (the gap-analysis effects
-library, :mod:`engine_model.gap.effects`), the measurement chain of a bench
+library, :mod:`engine_model.effects`), the measurement chain of a bench
 (gearbox losses between crank and brake, noise, quantisation) and the bench's
 limits (knocking points are aborted, as in the paper's zone 1; points below a
 holdable load are aborted, zone 2).  Its rows follow the bench contract, so a
@@ -31,6 +31,7 @@ from typing import Callable, Mapping
 import numpy as np
 import pandas as pd
 
+from engine_model import effects as effects_lib
 from engine_model.bench.burnlaw import BurnLaw
 from engine_model.contracts import (COMBUSTION_INPUTS, COMBUSTION_OUTPUTS, MEASURED_COLUMNS,
                                     check_combustion_inputs)
@@ -144,15 +145,6 @@ def apply_noise(rows: pd.DataFrame, noise: NoiseModel, seed: int) -> pd.DataFram
     return out
 
 
-def _effects_module():
-    try:
-        from engine_model.gap import effects as eff  # owned by the gap-analysis work; imported only when effects are used
-    except ImportError as exc:  # pragma: no cover - depends on the branch state
-        raise ValueError("VirtualBench: effects were requested but engine_model.gap.effects is not "
-                         f"available ({exc})") from None
-    return eff
-
-
 def _check_effects(effects) -> dict:
     if effects is None or (isinstance(effects, Mapping) and not effects):
         return {}
@@ -160,7 +152,7 @@ def _check_effects(effects) -> dict:
         raise ValueError(f"VirtualBench: effects must be a dict {{name: {{param: value}}}}, got "
                          f"{type(effects).__name__}")
     # names, parameters and ranges are checked by the effects library (ValueError listing valid names)
-    return _effects_module().check_effects(effects)
+    return effects_lib.check_effects(effects)
 
 
 @dataclass(frozen=True)
@@ -176,7 +168,7 @@ class VirtualBench:
         ``bdur_10_90_deg, wiebe_m`` works, e.g. a fitted map model).
     effects : dict {name: {param: value}}, optional
         Extra physical / measurement effects by name, applied through
-        :mod:`engine_model.gap.effects` (``apply_effects`` before the
+        :mod:`engine_model.effects` (``apply_effects`` before the
         simulation, ``post_effects`` on the measured rows).
     noise : NoiseModel
         Instrument noise and quantisation; :meth:`NoiseModel.none` for a
@@ -270,10 +262,10 @@ class VirtualBench:
         """What the truth engine simulates: plan -> model-side effects -> hidden law at the resulting inputs."""
         pts = self._plan(plan)
         if self.effects:
-            pts = _effects_module().apply_effects(pts, self.effects, spec=self.spec)
+            pts = effects_lib.apply_effects(pts, self.effects, spec=self.spec)
         return self._with_law(pts)
 
-    def _default_evaluate(self, points: pd.DataFrame) -> pd.DataFrame:
+    def default_evaluate(self, points: pd.DataFrame) -> pd.DataFrame:
         """In-process cycle model; rows that fail at a step above 0.5 deg are re-run once at 0.5 deg.
 
         (A 1 deg step is unstable below ~10 % throttle, see ``doe.QUICK_SOLVER``;
@@ -321,7 +313,7 @@ class VirtualBench:
             the bench settings (seed, eta_trans, limits, effects, noise).
         """
         pts = self.simulation_points(plan)
-        res = self._default_evaluate(pts) if evaluate is None else evaluate(pts)
+        res = self.default_evaluate(pts) if evaluate is None else evaluate(pts)
         if not isinstance(res, pd.DataFrame) or len(res) != len(pts):
             raise ValueError(f"VirtualBench.measure: evaluate returned {len(res) if hasattr(res, '__len__') else res!r} "
                              f"rows for {len(pts)} points")
@@ -359,7 +351,7 @@ class VirtualBench:
             echo = [c for c in res.columns if c in ("p_amb_pa", "t_amb_k") or c.startswith("gap_")]
             echo = [c for c in echo if c not in out.columns]
             tmp = pd.concat([out, res[echo]], axis=1)
-            tmp = _effects_module().post_effects(tmp, self.effects, eta_base=self.eta_trans, spec=self.spec)
+            tmp = effects_lib.post_effects(tmp, self.effects, eta_base=self.eta_trans, spec=self.spec)
             out = tmp.drop(columns=echo).reset_index(drop=True)
         out = apply_noise(out, self.noise, self.seed)
         bad = status != "ok"

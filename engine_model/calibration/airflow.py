@@ -32,7 +32,7 @@ at some speeds.  So the default parameter set is
    level it tilts the Ga curve.
 
 Why recovery and not the restrictor Cd (the set used before): a screen of 14
-candidate global parameters (:mod:`engine_model.calibrate_screen`,
+candidate global parameters (:mod:`engine_model.calibration.screen`,
 ``benchmarks/airflow_screen.py``; docs/sections/calibration.md) showed that
 around the matched runner lengths Cd moves Ga_REL by only 0.05-0.10 % per
 0.006 (the restrictor is far from choking at the matched flows), so it was

@@ -3,7 +3,7 @@
 The bench measures torque behind the gearbox, so the crank target is
 P_meas / eta_trans with eta_trans unknown (~0.95 in the paper).  eta only
 scales the target, so everything here is post-processing of the response
-surfaces built by :func:`engine_model.identify.identify` (no re-simulation).
+surfaces built by :func:`engine_model.calibration.identify.identify` (no re-simulation).
 """
 
 from __future__ import annotations
@@ -161,7 +161,7 @@ def identify_at_eta(ident: Identification, eta_trans) -> Identification:
     Parameters
     ----------
     ident : Identification
-        From :func:`engine_model.identify.identify` (its surfaces are reused).
+        From :func:`engine_model.calibration.identify.identify` (its surfaces are reused).
     eta_trans : float or dict
         One eta_trans [-] for all points, or ``{throttle_pct: eta}`` (e.g. from
         :meth:`JointFit.eta_by_throttle`); points whose throttle is missing keep ``ident.eta_trans``.

@@ -313,7 +313,7 @@ def chi2_terms(ps: PointSurfaces, eta_trans: float, tol: Tolerances, terms, powe
     return out
 
 
-def _branch_sign(ps: PointSurfaces) -> np.ndarray:
+def branch_sign(ps: PointSurfaces) -> np.ndarray:
     """dP/dm on the fine mesh: > 0 early side of the ridge, < 0 late side."""
     return np.gradient(ps.fine["brake_power_kw"], ps.fine_m, axis=1)
 
@@ -334,7 +334,7 @@ def identify_point(ps: PointSurfaces, eta_trans: float = 0.95, tol: Tolerances =
     p_meas = float(row["brake_power_kw"]) if power_meas_kw is None else power_meas_kw
     target = p_meas / eta_trans
     edge = bool(ri.min() == 0 or ri.max() == len(ps.fine_b) - 1 or rj.min() == 0 or rj.max() == len(ps.fine_m) - 1)
-    dpdm = _branch_sign(ps)
+    dpdm = branch_sign(ps)
     branch = "late" if dpdm[i, j] < 0 else "early"
     # mirror: same BDUR, power-matching m on the other side of the ridge
     other = (dpdm[i] >= 0) if branch == "late" else (dpdm[i] < 0)

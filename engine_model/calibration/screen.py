@@ -17,7 +17,7 @@ simulations.  Which three global parameters are worth it is decided cheaply:
    linearly too.
 
 The linear screen ranks; only the real, nonlinear match
-(:func:`engine_model.calibrate_airflow.match_airflow`) decides.
+(:func:`engine_model.calibration.airflow.match_airflow`) decides.
 
 :func:`smooth_floor` gives the data's own floor: the smallest max |Ga_REL|
 that *any* polynomial volumetric-efficiency curve of a given degree in speed

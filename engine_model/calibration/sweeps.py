@@ -1,6 +1,6 @@
 """Wiebe identification from spark sweeps: one (BDUR10-90, m) per operating point, all sparks at once.
 
-Per-point identification (:func:`engine_model.identify.identify`) without a
+Per-point identification (:func:`engine_model.calibration.identify.identify`) without a
 CA50 constraint is ill-posed along the ridge of maximum power: one torque and
 one exhaust temperature are matched by a curve of (BDUR10-90, m), and points
 away from MBT can land on the wrong side of the ridge.  The paper's bench
@@ -11,7 +11,7 @@ procedure is a spark sweep per (throttle, speed); this module uses it:
   from :func:`engine_model.priors.lambda_target`, ids ``<op>-s<k>``, column
   ``op_id``, rows in bench order (:func:`engine_model.doe.bench_order`).
 * :func:`identify_sweeps` sums the per-point chi2 fields of
-  :mod:`engine_model.identify` (power, exhaust temperature, peak pressure,
+  :mod:`engine_model.calibration.identify` (power, exhaust temperature, peak pressure,
   BSFC, fuel flow) over the sweep's points on the common fine (BDUR10-90, m)
   mesh, with (BDUR10-90, m) held constant across the sweep.  The shape of the
   torque-versus-spark curve then selects the burn: a burn that is too short
@@ -23,7 +23,7 @@ procedure is a spark sweep per (throttle, speed); this module uses it:
   is widened by the MBT-spark uncertainty (:data:`MBT_SPARK_SIGMA_DEG`).
 
 Spark dependence of the burn: the hidden law of the virtual bench
-(:class:`engine_model.burnlaw.BurnLaw`; advanced spark fires into colder, thinner gas and burns longer,
+(:class:`engine_model.bench.burnlaw.BurnLaw`; advanced spark fires into colder, thinner gas and burns longer,
 [H] sec. 9.3) moves BDUR10-90 by +-2.9 to +-5.2 % and m by 0 to +-3.4 % over a -15..+5 deg sweep around
 the MBT prior (measured with ``BurnLaw().predict`` on throttle 10-100 %, speed 3000-12000 rpm; e.g. WOT
 9000 rpm: 22.9 -> 25.1 deg, m 5.92 -> 6.32), i.e. 0.3-0.5 %/deg.  Small as it is, holding the parameters
@@ -90,7 +90,7 @@ def choose_operating_points(n: int, feasible: Callable[[pd.DataFrame], np.ndarra
         spark and target lambda (``speed_rpm, throttle_pct, spark_deg_btdc, lambda``).
     seed : int
     bounds : dict, optional
-        ``{"throttle_pct": (lo, hi), "speed_rpm": (lo, hi)}``; default :data:`engine_model.learning.BOUNDS`.
+        ``{"throttle_pct": (lo, hi), "speed_rpm": (lo, hi)}``; default :data:`engine_model.globalmodel.learning.BOUNDS`.
 
     Returns
     -------
@@ -247,7 +247,7 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
     terms : sequence of str or None
         Per-point chi2 terms to use where the row has the channel (subset of ``power, pmax, exhaust_temp,
         bsfc, fuel, air``); default :data:`DEFAULT_TERMS`; None = all of
-        :func:`engine_model.identify.terms_used`.
+        :func:`engine_model.calibration.identify.terms_used`.
     spark_slopes : sequence of (kb, km)
         Candidate relative spark slopes [1/deg] of BDUR10-90 and m: a point at spark ``s`` burns with
         ``(b (1 + kb (s - s_mean)), m (1 + km (s - s_mean)))``; the pair with the lowest chi2 is used

@@ -34,7 +34,7 @@ def choose_base(bench: pd.DataFrame, speed_curvature: bool = False) -> BaseModel
     Map-wide data: :data:`~engine_model.gap.linear.COMBUSTION_BASE` (BDUR10-90 offset, speed and load
     slopes).  A load term needs throttle variation (> 1 %); on a single load line (the paper's Table 2)
     the base is BDUR10-90 offset + speed slope.  The burn's spark slope (the burn lengthens with advance,
-    [H] sec. 9.3; see :mod:`engine_model.identify_sweep`) is added when the data span enough spark to
+    [H] sec. 9.3; see :mod:`engine_model.calibration.sweeps`) is added when the data span enough spark to
     carry it: operating points run as spark sweeps (at least 3 sparks spanning >= 6 deg at a typical
     operating point), or scattered points whose sparks lie over >= 6 deg around the MBT prior (a DOE with
     knock back-offs) with enough of them to pin a slope: std(spark offset) x sqrt(points) >= 10 deg (the
@@ -98,7 +98,7 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         Gauss-Newton iterations of the base calibration.
     overrides : dict {"section.field": value}, optional
         Spec values fixed by an earlier calibration step (e.g. the airflow match of
-        ``engine_model.calibrate``); they become ``spec.*`` columns of every simulated row and the
+        ``engine_model.calibration``); they become ``spec.*`` columns of every simulated row and the
         effects act on top of them.
     error_model : str
         The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).

@@ -2,7 +2,7 @@
 
 For every effect of the library, at a few magnitudes (fractions of its
 realistic magnitude) and several noise seeds, the virtual bench
-(:class:`engine_model.virtual_bench.VirtualBench`, hidden burn law) measures a
+(:class:`engine_model.bench.virtual.VirtualBench`, hidden burn law) measures a
 small realistic DOE with that effect present; the base model (without the
 effect) is calibrated and the diagnosis names an effect or says that none
 explains the gap.  Plus the null case (no effect withheld) and an

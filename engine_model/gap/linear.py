@@ -7,7 +7,7 @@ simulated outputs and their sensitivities to
   combustion law (BDUR10-90 and Wiebe m as low-order functions of speed, load
   and spark over the DOE prior of :func:`engine_model.priors.combustion_estimate`)
   and optionally an airflow-matching factor;
-* every parameter of every candidate effect (:mod:`engine_model.gap.effects`).
+* every parameter of every candidate effect (:mod:`engine_model.effects`).
 
 :func:`linearise` gets them all from ONE batch of simulations through an
 ``evaluate(plan) -> results`` callable (in-process ``simulate`` or the Dask

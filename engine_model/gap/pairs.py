@@ -74,7 +74,7 @@ def _pair_cols(prob, a: str, b: str) -> list[int]:
     return prob.base_cols + prob.cand_cols[a] + prob.cand_cols[b]
 
 
-def _heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray) -> np.ndarray:
+def heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray) -> np.ndarray:
     """Held-out chi2 of the columns ``cols`` for many residual vectors at once, without parameter bounds.
 
     For a fixed design the K-fold held-out residuals are linear in the data: on fold f they are
@@ -166,9 +166,9 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         thr, thr_x = noise_cache[key]
     else:
         e = np.random.default_rng(seed + 15485863).standard_normal((prob.r.size, n_noise))
-        h0 = _heldout_chi2_linear(prob, prob.base_cols, folds, e)
-        h1 = np.min([_heldout_chi2_linear(prob, prob.base_cols + prob.cand_cols[c], folds, e) for c in cands], axis=0)
-        h2 = np.min([_heldout_chi2_linear(prob, _pair_cols(prob, a, b), folds, e) for a, b in pairs], axis=0)
+        h0 = heldout_chi2_linear(prob, prob.base_cols, folds, e)
+        h1 = np.min([heldout_chi2_linear(prob, prob.base_cols + prob.cand_cols[c], folds, e) for c in cands], axis=0)
+        h2 = np.min([heldout_chi2_linear(prob, _pair_cols(prob, a, b), folds, e) for a, b in pairs], axis=0)
         thr = float(np.quantile(h0 - h2, 1.0 - alpha))
         thr_x = float(np.quantile(h1 - h2, 1.0 - alpha))
         if noise_cache is not None:

@@ -5,7 +5,7 @@ D-optimal, Sobol', Latin hypercube; all from :mod:`engine_model.doe`), asks an
 ``identify(plan)`` callable for the combustion parameters at their points (in
 the pipeline: the virtual bench + Wiebe identification; in tests: the truth
 law plus identification-like noise, :func:`noisy_truth`), fits the global
-map-wide model (:class:`engine_model.mapmodel.MapModel`) and scores it against
+map-wide model (:class:`engine_model.globalmodel.mapmodel.MapModel`) and scores it against
 the truth on a held-out test set over the feasible map.  Several seeds per
 design and size give the spread.
 
@@ -48,7 +48,7 @@ SPARK_OFFSET = (-20.0, 5.0)
 FACTORS3 = ("throttle_pct", "speed_rpm", "spark_deg_btdc")
 
 
-def _absolute_spark(plan: pd.DataFrame) -> pd.DataFrame:
+def absolute_spark(plan: pd.DataFrame) -> pd.DataFrame:
     """Plan generated with spark as an offset -> absolute spark [deg BTDC] (offset kept as a column)."""
     p = plan.copy()
     p["spark_offset_deg"] = p["spark_deg_btdc"].to_numpy(float)
@@ -116,7 +116,7 @@ def design_plan(design: str, n: int, seed: int = 0, bounds: dict | None = None,
             grids = [np.linspace(*b[k], 7) for k in ("speed_rpm", "throttle_pct", "spark_deg_btdc")]
             cand = pd.DataFrame(np.array(np.meshgrid(*grids, indexing="ij")).reshape(3, -1).T,
                                 columns=["speed_rpm", "throttle_pct", "spark_deg_btdc"])
-            probe = _absolute_spark(cand.assign(**{"lambda": priors.lambda_target(cand["throttle_pct"].to_numpy())}))
+            probe = absolute_spark(cand.assign(**{"lambda": priors.lambda_target(cand["throttle_pct"].to_numpy())}))
             cand = cand[np.asarray(feasible(probe), bool)].reset_index(drop=True)
         p = doe.d_optimal(n, model="quadratic", candidates=cand, bounds=b, seed=seed)
     elif design == "sobol":
@@ -126,14 +126,14 @@ def design_plan(design: str, n: int, seed: int = 0, bounds: dict | None = None,
     else:
         raise ValueError(f"design_plan: unknown design {design!r}; choose from {list(DESIGNS)}")
     # the generators filled lambda from the target already; spark was generated as an offset
-    return _absolute_spark(p)
+    return absolute_spark(p)
 
 
 def holdout_grid(throttle_pct=(5, 10, 15, 20, 30, 40, 60, 80, 100), speed_rpm=tuple(range(3000, 13001, 1000)),
               spark_offset=(-20, -15, -10, -5, 0, 5)) -> pd.DataFrame:
     """Held-out test points: an ECU-style grid x spark offsets around the MBT prior (594 points by default)."""
     p = doe.full_factorial(speed_rpm=speed_rpm, throttle_pct=throttle_pct, spark_deg_btdc=spark_offset)
-    return _absolute_spark(p)
+    return absolute_spark(p)
 
 
 def nearest_feasible(reference: pd.DataFrame, ok: np.ndarray, bounds: dict | None = None,
@@ -208,7 +208,7 @@ def noisy_truth(law, sigma_bdur_deg: float = 1.5, sigma_m: float = 0.4, seed: in
     Parameters
     ----------
     law : object with ``predict(points)``
-        The truth (e.g. :class:`engine_model.burnlaw.BurnLaw`).
+        The truth (e.g. :class:`engine_model.bench.burnlaw.BurnLaw`).
     sigma_bdur_deg, sigma_m : float
         Identification noise, 1 sigma [deg], [-].  See the learning-curve
         section of the docs for how the defaults follow from the bench noise.
@@ -256,9 +256,9 @@ def phasing_noisy_truth(law, sigma_ca50_offset_deg: float = IDENT_SIGMA_CA50_OFF
     """A cheap ``identify`` whose errors have the structure of real sweep identification.
 
     The truth's (BDUR10-90, m) are converted to (CA50 offset, m) (the ignition-to-CA50 angle,
-    :func:`engine_model.mapmodel.ca50_offset_deg`), both get bivariate normal noise (sigmas
+    :func:`engine_model.globalmodel.mapmodel.ca50_offset_deg`), both get bivariate normal noise (sigmas
     ``sigma_ca50_offset_deg`` [deg], ``sigma_m`` [-], correlation ``rho``), and BDUR10-90 is the burn with the
-    noisy offset and m (:func:`engine_model.mapmodel.bdur_10_90_from_ca50_offset`).  The defaults are the
+    noisy offset and m (:func:`engine_model.globalmodel.mapmodel.bdur_10_90_from_ca50_offset`).  The defaults are the
     measured ones (:data:`IDENT_SIGMA_CA50_OFFSET_DEG`, :data:`IDENT_SIGMA_M`, :data:`IDENT_RHO_CA50_OFFSET_M`).
     Seeding, masking and the returned columns as in :func:`noisy_truth`; ``ca50_offset_deg`` is added.
     """
@@ -302,13 +302,13 @@ def bench_identify(bench, evaluate: Callable[[pd.DataFrame], pd.DataFrame] | Non
         (default: the bench's in-process evaluator); the flow layer passes a
         Dask-backed one.
     n_bdur, n_m : int
-        Identification grid (:func:`engine_model.identify.identification_plan`);
+        Identification grid (:func:`engine_model.calibration.identify.identification_plan`);
         costs ``n_bdur * n_m`` simulations per bench point.  Measured on the
         virtual bench: a 7 x 7 grid missed the hidden law by 8-20 deg at 5 of 8
         points, the default 11 x 13 recovered WOT 9000 rpm within 0.3 deg /
         0.1 (see docs/sections/mapmodel.md).
     surface : str
-        Response-surface kind of :func:`engine_model.identify.identify`.
+        Response-surface kind of :func:`engine_model.calibration.identify.identify`.
     eta_trans : float, optional
         Transmission efficiency assumed by the identification; default the
         bench's own (a perfectly known gearbox).
@@ -321,10 +321,11 @@ def bench_identify(bench, evaluate: Callable[[pd.DataFrame], pd.DataFrame] | Non
         its tolerances), ``*_std`` from the 95 % region (half-width / 2.45:
         chi2 with 2 degrees of freedom), ``bench_status``, ``identify_status``.
     """
-    from engine_model.calibration import identify as _ident
+    from engine_model.calibration.identify import identification_plan
+    from engine_model.calibration.identify import identify as identify_points
     from engine_model.bench import validate_bench
 
-    ev = bench._default_evaluate if evaluate is None else evaluate
+    ev = bench.default_evaluate if evaluate is None else evaluate
 
     def identify(plan: pd.DataFrame) -> pd.DataFrame:
         meas = bench.measure(plan, evaluate=evaluate)
@@ -337,8 +338,8 @@ def bench_identify(bench, evaluate: Callable[[pd.DataFrame], pd.DataFrame] | Non
         if len(ok):
             ok["at_mbt"] = False  # spark is a plan factor: no CA50 = MBT constraint
             v = validate_bench(ok, "virtual bench")
-            res = ev(_ident.identification_plan(v, n_bdur=n_bdur, n_m=n_m))
-            tab = _ident.identify(v, res, bench.eta_trans if eta_trans is None else eta_trans,
+            res = ev(identification_plan(v, n_bdur=n_bdur, n_m=n_m))
+            tab = identify_points(v, res, bench.eta_trans if eta_trans is None else eta_trans,
                                   surface=surface).table.set_index("point_id")
             idx = out.index[out["point_id"].isin(tab.index)]
             t = tab.loc[out.loc[idx, "point_id"]]

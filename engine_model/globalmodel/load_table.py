@@ -15,7 +15,7 @@ throttle x speed grid (spark at the MBT prior, burn at the DOE prior: load
 hardly depends on either) and stores the chosen load quantity; a
 :class:`LoadTable` interpolates it (PCHIP, shape-preserving, in both
 directions) at any (throttle, speed) inside the grid.  The global model
-(:class:`engine_model.mapmodel.MapModel` with ``load_table=``) then uses the
+(:class:`engine_model.globalmodel.mapmodel.MapModel` with ``load_table=``) then uses the
 load instead of the throttle as its first coordinate; the table is stored
 inside the model file, so predictions need no simulator.
 

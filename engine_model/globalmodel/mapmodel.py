@@ -4,7 +4,7 @@ The paper ends where this starts: "by applying the method on a set of points
 predefined by a DOE plan, form an overall model relating load, speed and spark
 advance to combustion parameters over the whole map" [P].  :class:`MapModel`
 takes the combustion parameters identified at DOE points and fits each output
-with several model families (:mod:`engine_model.surrogates`: a polynomial
+with several model families (:mod:`engine_model.globalmodel.surrogates`: a polynomial
 response surface with PRESS term selection, a Gaussian process), chooses the
 family per output by K-fold cross-validation, and predicts with uncertainty.
 
@@ -14,7 +14,7 @@ identification without a pressure sensor fixes the phasing far better than
 either burn parameter (measured in docs/sections/mapmodel.md).
 
 Its ``predict(points)`` has the same protocol as the truth engine's
-:meth:`engine_model.burnlaw.BurnLaw.predict`, so either can drive the
+:meth:`engine_model.bench.burnlaw.BurnLaw.predict`, so either can drive the
 table-building code.
 
 Inputs are coded to -1..1 over the training range.  By default spark enters as
@@ -126,7 +126,7 @@ class MapModel:
         beyond the edge, flat after that; 'extend' evaluates the surface
         as it is.  Either way the row is flagged.
     load_table : LoadTable, optional
-        With a table (:func:`engine_model.load_table.build_load_table`: the
+        With a table (:func:`engine_model.globalmodel.load_table.build_load_table`: the
         calibrated simulator's plenum pressure ratio or volumetric efficiency
         over throttle x speed), the throttle factor enters as that *load*
         (coordinate ``load`` in ``ranges_``), not as throttle angle: the burn
@@ -210,7 +210,7 @@ class MapModel:
         if self.load_table is not None:
             from engine_model.globalmodel.load_table import LoadTable
             if not isinstance(self.load_table, LoadTable):
-                raise ValueError(f"MapModel: load_table must be an engine_model.load_table.LoadTable, got "
+                raise ValueError(f"MapModel: load_table must be an engine_model.globalmodel.load_table.LoadTable, got "
                                  f"{type(self.load_table).__name__}")
             if "throttle_pct" not in self.factors:
                 raise ValueError("MapModel: a load_table replaces the throttle factor; 'throttle_pct' is not among "
@@ -389,7 +389,7 @@ class MapModel:
                 std = std * mean                           # delta method
             out[o], out[f"{o}_std"] = mean, std * self.std_scale_.get(o, 1.0)
         if self.parametrisation == "phasing":
-            out = self._from_phasing(out)
+            out = self.burn_from_phasing(out)
         extra = np.zeros(len(points), dtype=bool)
         if x.size:
             extra |= np.any(np.abs(x) > 1.02, axis=1)
@@ -401,7 +401,7 @@ class MapModel:
         out["extrapolation"] = extra
         return pd.DataFrame(out, index=points.index)
 
-    def _from_phasing(self, fitted: dict) -> dict:
+    def burn_from_phasing(self, fitted: dict) -> dict:
         """(CA50 offset, m) predictions -> outputs in ``self.outputs`` order, BDUR10-90 with a delta-method std
         (offset and m errors taken as independent), then the offset and its std.  BDUR10-90 is NaN where the
         predicted offset is <= 0 or m <= -1 (possible only without the log transform, far outside the data)."""
@@ -541,5 +541,5 @@ def fit_map_model(data: pd.DataFrame, spec=None, **settings) -> MapModel:
 
 
 def load(path, spec=None) -> MapModel:
-    """Function twin of :meth:`MapModel.load` (used by :func:`engine_model.maps.load_model`)."""
+    """Function twin of :meth:`MapModel.load` (used by :func:`engine_model.tables.load_model`)."""
     return MapModel.load(path, spec=spec)

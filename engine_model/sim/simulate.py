@@ -1,6 +1,6 @@
 """Python face of the cycle model: ``simulate(spec, points) -> DataFrame``.
 
-Inputs and outputs follow the data contract of DESIGN.md (column names carry
+Inputs and outputs follow the data contract of engine_model.contracts (column names carry
 units).  All rows are validated before anything is computed, so a bad table
 raises a ValueError naming the row, the column and the value, and no partial
 result exists.
@@ -123,7 +123,7 @@ def _volume_name(k: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
     return f"volume {k}"
 
 
-def _failure_text(code: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
+def failure_text(code: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
     """Kernel failure code -> words: 100+k temperature out of range in volume k, 200+k negative mass."""
     kind, k = divmod(int(code), 100)
     what = {1: "temperature left the 150-4400 K range", 2: "negative mass"}.get(kind, f"code {code}")
@@ -145,7 +145,7 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
     if fail:
         nsi = spec.intake.runner_segments if spec.intake.runner_inertia else 1
         nse = spec.exhaust.runner_segments if spec.exhaust.runner_inertia else 1
-        row["status"] = f"failed: {_failure_text(fail, spec.geometry.n_cylinders, nsi, nse)}"
+        row["status"] = f"failed: {failure_text(fail, spec.geometry.n_cylinders, nsi, nse)}"
         row["converged"] = False
         return row
     row["status"] = "ok" if row["converged"] else "not converged"

@@ -222,7 +222,7 @@ class LambdaTable:
 
     @classmethod
     def from_csv(cls, path) -> "LambdaTable":
-        """From a wide CSV as written by :func:`engine_model.maps_io.write_maps` (``lambda_target.csv``)."""
+        """From a wide CSV as written by :func:`engine_model.tables.export.write_maps` (``lambda_target.csv``)."""
         p = Path(path)
         if not p.is_file():
             raise ValueError(f"{p}: file not found")

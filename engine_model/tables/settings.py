@@ -167,7 +167,7 @@ def load_model(path):
     try:
         from engine_model.globalmodel import mapmodel
     except ImportError:
-        raise ValueError(f"{p}: not a combustion-prior file, and engine_model.mapmodel is not available") from None
+        raise ValueError(f"{p}: not a combustion-prior file, and engine_model.globalmodel.mapmodel is not available") from None
     return mapmodel.load(p)
 
 

@@ -1,4 +1,4 @@
-"""ECU tables (engine_model.maps): input checks, the spark search against brute force, knock, injection, export.
+"""ECU tables (engine_model.tables): input checks, the spark search against brute force, knock, injection, export.
 
 The map fixture is a 3 x 3 grid simulated at a 1 deg crank step (default
 tolerance): the search's logic is the same at any step, and 1 deg is ~2x
@@ -21,10 +21,9 @@ from engine_model import doe
 from engine_model import priors
 
 from engine_model.sim import simulate
-from engine_model.tables.build import (EcuGrid, LambdaTable, MapSettings, PriorModel, decide_cell, build_maps,
-                               injection_time_ms, load_model, parse_breakpoints, second_differences, smooth_table,
-                               write_maps)
-from engine_model.tables.export import TABLES, long_form
+from engine_model.tables import (TABLES, EcuGrid, LambdaTable, MapSettings, PriorModel, build_maps, injection_time_ms,
+                                 load_model, long_form, parse_breakpoints, second_differences, smooth_table, write_maps)
+from engine_model.tables.search import decide_cell
 
 SOLVER = SolverSettings(step_deg=1.0)
 GRID = EcuGrid((20.0, 60.0, 100.0), (4000.0, 8000.0, 12000.0))
@@ -320,7 +319,7 @@ def test_write_maps_contract_round_trip_and_atomic_replace(built, tmp_path, monk
     lam = LambdaTable.from_csv(out / "lambda_target.csv")                  # the CSV is a valid lambda input
     np.testing.assert_allclose(lam.on_grid(GRID), res.table("lambda"))
     # a failing rewrite leaves the previous complete set and no temporary folder
-    import engine_model.maps_io as mio
+    import engine_model.tables.export as mio
 
     def boom(*a, **k):
         raise RuntimeError("disk full")
@@ -387,10 +386,10 @@ def test_search_recovers_the_synthetic_engine():
     assert res.stats["points_per_cell"] < 14
 
 
-def testbounded_quadratic_matches_scipy():
+def test_bounded_quadratic_matches_scipy():
     from scipy.optimize import lsq_linear
 
-    from engine_model.tables.grid import bounded_quadratic
+    from engine_model.tables.smoothing import bounded_quadratic
     rng = np.random.default_rng(7)
     m = rng.normal(size=(30, 12))
     y = rng.normal(size=30)
@@ -496,7 +495,7 @@ def fitted_map():
     spec, law = default_spec(), BurnLaw()
     pts = doe.latin_hypercube(48, bounds={"spark_deg_btdc": (-20.0, 5.0), "speed_rpm": (5000.0, 13000.0),
                                           "throttle_pct": (20.0, 100.0)}, seed=7)
-    pts = learning._absolute_spark(pts)
+    pts = learning.absolute_spark(pts)
     pts["point_id"] = [f"lhs{i}" for i in range(len(pts))]
     data = learning.phasing_noisy_truth(law, seed=1)(pts)
     table = build_load_table(spec, throttle_pct=[t for t in DEFAULT_THROTTLE_PCT if t >= 20],

@@ -8,6 +8,7 @@ not the physics (the other calibration tests do that).
 import json
 
 import pandas as pd
+import pytest
 
 from engine_model.bench import load_bench
 from flows.cli import main
@@ -26,14 +27,15 @@ def test_mbc_calibrate_reduced(prefect_api, tmp_path, capsys):
     rc = main(["calibrate", "--bench", str(src), "--out", str(out), "--n-bdur", "4", "--n-m", "4",
                "--airflow-grid", "2x2x1", "--airflow-max-nfev", "2", "--step-deg", "1.0", "--workers", "2"])
     assert rc == 0
-    air = pd.read_parquet(out / "airflow_match.parquet")
+    cal = out / "calibration"
+    air = pd.read_parquet(cal / "airflow_match.parquet")
     assert list(air.columns[:5]) == AIRFLOW_COLUMNS and list(air["point_id"]) == ["wot_9000", "wot_10500"]
     assert air["ga_rel_pct"].abs().max() < 15
-    par = pd.read_parquet(out / "combustion_params.parquet")
+    par = pd.read_parquet(cal / "combustion_params.parquet")
     assert set(PARAM_COLUMNS) <= set(par.columns) and len(par) == 2
     assert par["bdur_10_90_deg"].between(20, 50).all() and par["wiebe_m"].between(2, 8).all()
     assert (par["eta_trans"] == 0.95).all()
-    summary = json.loads((out / "summary.json").read_text())
+    summary = json.loads((cal / "summary.json").read_text())
     assert summary["identification"]["simulations"] == 2 * 16
     assert set(summary["airflow"]["parameters"]) == {"exhaust.runner_length_m", "intake.runner_length_m",
                                                      "intake.restrictor_recovery"}
@@ -44,16 +46,23 @@ def test_mbc_calibrate_reduced(prefect_api, tmp_path, capsys):
     assert idn["fit_ok"] == sum(r["fit_ok"] for r in idn["per_point"])
     g = je["groups"][0]
     assert g["throttle_pct"] == 100 and g["ci95"][0] <= g["eta_trans"] <= g["ci95"][1]
-    joint_par = pd.read_parquet(out / "combustion_params_joint_eta.parquet")
+    joint_par = pd.read_parquet(cal / "combustion_params_joint_eta.parquet")
     assert set(PARAM_COLUMNS) <= set(joint_par.columns) and (joint_par["eta_trans"] == g["eta_trans"]).all()
     text = capsys.readouterr().out
     assert "Identification at eta_trans = 0.95 (default)" in text and "shared eta_trans" in text
     assert "wot_10500" in text
     for f in ("calibration.md", "calibration.html", "eta_sensitivity.parquet", "eta_relation.parquet",
               "figures/ga_rel_vs_speed.png", "figures/plane_wot_9000.png", "figures/eta_relation.png"):
-        assert (out / f).is_file(), f
-    md = (out / "calibration.md").read_text()
+        assert (cal / f).is_file(), f
+    md = (cal / "calibration.md").read_text()
     assert "](figures/plane_wot_9000.png)" in md and "](figures/ga_rel_vs_speed.png)" in md
+    # the calibrated engine is written as a spec file that reads back with the matched values
+    from engine_model.calibrated import CalibratedEngine
+    eng = CalibratedEngine.load(out / "engine.toml")
+    assert eng.overrides == pytest.approx(summary["airflow"]["parameters"])
+    for key, val in summary["airflow"]["parameters"].items():
+        section, field = key.split(".")
+        assert getattr(getattr(eng.spec, section), field) == val
     # every simulation went through the sweep pipeline (resumable parts on disk)
     assert sorted(p.name for p in (out / "sweeps").iterdir())[0] == "airflow-000"
     assert any((out / "sweeps" / "identification-000" / "sweep").glob("part-*.parquet"))

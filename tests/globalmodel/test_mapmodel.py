@@ -123,10 +123,10 @@ def test_save_load_round_trip_and_spec_check(fitted, tmp_path):
     with pytest.raises(ValueError, match="not found"):
         MapModel.load(tmp_path / "missing.json")
     # the table builder's loader reads it too, and refuses it for another engine
-    from engine_model.tables import build as maps
+    from engine_model.tables import settings as maps
     assert maps.load_model(path).chosen_ == m.chosen_
     with pytest.raises(ValueError, match="not for spec"):
-        maps._check_model(maps.load_model(path), other)
+        maps.check_model(maps.load_model(path), other)
 
 
 def test_extrapolation_flag_and_fixed_factors(fitted):
@@ -246,7 +246,7 @@ def test_model_with_load_table_uses_load_and_checks_spec_and_coverage(tmp_path):
     wide = train.assign(speed_rpm=np.where(np.arange(len(train)) == 5, 14500.0, train["speed_rpm"]))
     with pytest.raises(ValueError, match=r"data row 5 \(throttle .* speed 14500 rpm\) lies outside the load table"):
         MapModel(factors=FACTORS3, load_table=lt).fit(wide, spec=spec)
-    with pytest.raises(ValueError, match=r"load_table must be an engine_model.load_table.LoadTable"):
+    with pytest.raises(ValueError, match=r"load_table must be an engine_model.globalmodel.load_table.LoadTable"):
         MapModel(load_table={"a": 1}).fit(train)
 
 
@@ -373,7 +373,7 @@ def test_phasing_model_round_trip_old_files_and_bad_input(tmp_path):
     with pytest.raises(ValueError, match=r"parametrisation='phasing' needs outputs"):
         MapModel(parametrisation="phasing", outputs=("wiebe_m",)).fit(train)
     # outside the Wiebe domain (offset <= 0 or m <= -1, reachable by an untransformed surface far out): no burn
-    got = m._from_phasing({"ca50_offset_deg": np.array([50.0, -1.0, 50.0]), "ca50_offset_deg_std": np.ones(3),
+    got = m.burn_from_phasing({"ca50_offset_deg": np.array([50.0, -1.0, 50.0]), "ca50_offset_deg_std": np.ones(3),
                            "wiebe_m": np.array([5.0, 5.0, -1.5]), "wiebe_m_std": np.ones(3)})
     assert np.isfinite(got["bdur_10_90_deg"][0]) and np.isnan(got["bdur_10_90_deg"][1:]).all()
     with pytest.raises(ValueError, match=r"row 2: bdur_10_90_deg = -1, wiebe_m = 5.4"):

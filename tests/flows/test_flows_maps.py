@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from engine_model import default_spec
-from engine_model.tables.build import LambdaTable, PriorModel
+from engine_model.tables import LambdaTable, PriorModel
 from flows.cli import main
 
 

@@ -417,7 +417,7 @@ def test_load_plan_warns_when_content_edited(tmp_path):
 
 def test_example_plans_are_small_and_valid():
     from pathlib import Path
-    root = Path(__file__).resolve().parents[1] / "doe_plans"
+    root = Path(__file__).resolve().parents[2] / "doe_plans"
     for name in ("r6_full_factorial", "r6_sobol_64"):
         for ext in (".csv", ".parquet", ".meta.json"):
             f = root / f"{name}{ext}"

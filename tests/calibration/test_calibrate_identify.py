@@ -14,7 +14,7 @@ from engine_model import SolverSettings, default_spec
 
 from engine_model.sim import simulate
 from engine_model import calibration as cal
-from engine_model.calibration.identify import _branch_sign
+from engine_model.calibration.identify import branch_sign
 
 SOLVER = SolverSettings(step_deg=1.0)
 TRUE_B, TRUE_M, ETA = 28.0, 5.3, 0.95
@@ -53,7 +53,7 @@ def test_ridge_ambiguity_resolved_by_ca50_and_pmax(case):
     ps = cal.identify(bench, res, eta_trans=ETA).surfaces["truth00"]
     target = bench["brake_power_kw"].iloc[0] / ETA
     iso = np.abs(ps.fine["brake_power_kw"] / target - 1) < 0.005
-    early = _branch_sign(ps) > 0
+    early = branch_sign(ps) > 0
     # power alone: the measured isoline runs on both sides of the ridge
     assert (iso & early).sum() > 50 and (iso & ~early).sum() > 50
     only_p = cal.identify_point(ps, ETA, terms=["power"])

@@ -101,10 +101,10 @@ def test_very_late_burn_is_a_result_not_a_failure(wot_9000):
 
 
 def test_failure_codes_name_the_volume():
-    from engine_model.sim.simulate import _failure_text
-    assert _failure_text(201, 4) == "negative mass in cylinder 2"
-    assert _failure_text(110, 4) == "temperature left the 150-4400 K range in exhaust port 3"
-    assert _failure_text(212, 4) == "negative mass in plenum"
+    from engine_model.sim.simulate import failure_text
+    assert failure_text(201, 4) == "negative mass in cylinder 2"
+    assert failure_text(110, 4) == "temperature left the 150-4400 K range in exhaust port 3"
+    assert failure_text(212, 4) == "negative mass in plenum"
 
 
 def _with_segments(spec, n_in, n_ex):
@@ -140,8 +140,8 @@ def test_segmented_runner_converges_in_the_number_of_segments():
 
 
 def test_runner_joint_failures_are_named():
-    from engine_model.sim.simulate import _failure_text
+    from engine_model.sim.simulate import failure_text
     # 4 cylinders, 2 intake and 3 exhaust segments: volumes 15..18 intake joints, 19..26 exhaust joints
-    assert _failure_text(215, 4, 2, 3) == "negative mass in intake runner 1, joint 1"
-    assert _failure_text(218, 4, 2, 3) == "negative mass in intake runner 4, joint 1"
-    assert _failure_text(122, 4, 2, 3) == "temperature left the 150-4400 K range in exhaust runner 2, joint 2"
+    assert failure_text(215, 4, 2, 3) == "negative mass in intake runner 1, joint 1"
+    assert failure_text(218, 4, 2, 3) == "negative mass in intake runner 4, joint 1"
+    assert failure_text(122, 4, 2, 3) == "temperature left the 150-4400 K range in exhaust runner 2, joint 2"

@@ -73,7 +73,7 @@ def test_missing_column_is_named():
 def test_validation_happens_before_any_simulation(monkeypatch):
     """A bad last row must stop the run before the first point is simulated."""
     import importlib
-    sim = importlib.import_module("engine_model.simulate")
+    sim = importlib.import_module("engine_model.sim.simulate")
     calls = []
     monkeypatch.setattr(sim, "simulate_point", lambda *a, **k: calls.append(1))
     pts = _points(3)

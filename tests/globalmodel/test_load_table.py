@@ -1,4 +1,4 @@
-"""Load table from the cycle model (engine_model.load_table): physics of the plenum pressure, failed nodes flagged.
+"""Load table from the cycle model (engine_model.globalmodel.load_table): physics of the plenum pressure, failed nodes flagged.
 
 A 4 x 4 grid at the load table's default solver (1 deg step, 1 % tolerance): the plenum pressure converges long
 before the cycle work does; 16 simulations, a few seconds.

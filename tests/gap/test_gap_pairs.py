@@ -80,11 +80,11 @@ def test_bad_input(lin):
 
 def test_noise_closed_form_equals_the_fold_by_fold_fit(lin):
     from engine_model.gap.fitting import heldout_columns
-    from engine_model.gap.pairs import _heldout_chi2_linear
+    from engine_model.gap.pairs import heldout_chi2_linear
 
     d = diagnose(lin, _measure(lin, np.zeros(len(lin.columns)), 5), n_noise=20)
     prob, folds = d.extra["problem"], d.extra["folds"]
     e = np.random.default_rng(0).standard_normal((prob.r.size, 4))
     for cols in (prob.base_cols, prob.base_cols + prob.cand_cols["friction"] + prob.cand_cols["heat_transfer"]):
         direct = [heldout_columns(prob, cols, folds, e[:, j])[0] for j in range(4)]
-        np.testing.assert_allclose(_heldout_chi2_linear(prob, cols, folds, e), direct, rtol=1e-9)
+        np.testing.assert_allclose(heldout_chi2_linear(prob, cols, folds, e), direct, rtol=1e-9)

@@ -59,7 +59,7 @@ def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
 
 def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
     """`--knock-uncertainty-z` is passed to MapSettings: a bad value is refused by name before any cluster starts."""
-    from engine_model.tables.build import PriorModel
+    from engine_model.tables import PriorModel
 
     model = PriorModel().save(tmp_path / "prior.json")
     out = tmp_path / "maps"

@@ -1,4 +1,4 @@
-"""Spark-sweep identification against the virtual bench's hidden law (engine_model.identify_sweep).
+"""Spark-sweep identification against the virtual bench's hidden law (engine_model.calibration.sweeps).
 
 Cost: 2 operating points x 4 sparks on the virtual bench plus a 5 x 5 (BDUR10-90, m) grid per runnable
 point, all with doe.QUICK_SOLVER (1 deg step): the bench and the identification use the same solver, so
