@@ -161,8 +161,7 @@ def cmd_gap_benchmark(args) -> int:
     from flows.stages.gap import run_gap_benchmark
 
     run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
-                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design,
-                      error_model=args.error_model, speed_curvature=args.speed_curvature)
+                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design)
     return 0
 
 
@@ -292,16 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
     gb.add_argument("--seed-start", type=int, default=0,
                     help="first noise seed (default 0); e.g. 5 for fresh seeds after tuning on 0-4")
-    gb.add_argument("--design", choices=("sobol", "sweep", "discriminating"), default="discriminating",
+    gb.add_argument("--design", choices=("discriminating", "sobol"), default="discriminating",
                     help="benchmark DOE: 32 points chosen from a candidate pool to tell the effects apart "
-                         "(default, as mbc gap-plan), 32 scattered Sobol' points, or 8 operating points x "
-                         "4-spark sweeps")
-    gb.add_argument("--error-model", choices=("diagonal", "burn_scatter"), default=None,
-                    help="structural error model of the diagnosis: per-point burn scatter correlated across a "
-                         "point's readings (GLS; the library's default), or per reading in quadrature")
-    gb.add_argument("--no-speed-curvature", dest="speed_curvature", action="store_false",
-                    help="do not let the base calibration carry a speed curvature of the burn duration (it is used "
-                         "by default where the plan has >= 24 operating points over >= 5000 rpm)")
+                         "(default, as mbc gap-plan), or 32 scattered Sobol' points (cheaper to plan)")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)

@@ -253,27 +253,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
     write_json({**base, "status": "running", "started": started}, man_path)
 
     schema = store.result_schema(pts)
-    shash, solh = eng.spec_hash(), store.solver_hash(solver)
-    todo, skipped = [], 0
-    counts = {"points": 0, "ok": 0, "not_converged": 0, "failed": 0}   # summed per part: no dataset read
-    for stale in sweep_dir.glob(store.PART_GLOB):   # parts of another chunking (e.g. an older version)
-        try:
-            index = int(stale.stem.split("-")[1])
-        except (IndexError, ValueError):
-            continue
-        if index >= len(bounds):
-            stale.unlink()
-    for c, (a, b) in enumerate(bounds):
-        key = store.chunk_key(pts.iloc[a:b], shash, solh)
-        path = store.part_path(sweep_dir, c)
-        if path.exists():
-            meta = store.read_part_meta(path)
-            if meta is not None and meta.get("key") == key:
-                skipped += 1
-                _add_counts(counts, store.summarize(pd.read_parquet(path, columns=["status"])))
-                continue
-            path.unlink()   # stale or torn: recompute
-        todo.append((c, a, b, key))
+    todo, skipped, counts = _resume_state(sweep_dir, pts, bounds, eng.spec_hash(), store.solver_hash(solver))
     bar = Progress(len(todo), sum(b - a for _, a, b, _ in todo), enabled=progress)
     if progress and skipped:
         print(f"resuming: {skipped} of {len(bounds)} chunks already done", file=sys.stderr)
@@ -341,6 +321,35 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         raise RuntimeError(f"{len(failed)} chunk(s) failed after retries ({sorted(failed)}); their points are "
                            f"listed as missing in {man_path}; run the same command again to compute them")
     return man
+
+
+def _resume_state(sweep_dir: Path, pts: pd.DataFrame, bounds: list, spec_hash: str, solver_h: str):
+    """Chunks still to compute ``[(chunk, first_row, end_row, key)]``, chunks already on disk, their counts.
+
+    A part on disk counts as done only when its stored key matches the chunk's inputs (spec, solver,
+    points); stale or torn parts, and parts of another chunking, are removed.
+    """
+    todo, skipped = [], 0
+    counts = {"points": 0, "ok": 0, "not_converged": 0, "failed": 0}   # summed per part: no dataset read
+    for stale in sweep_dir.glob(store.PART_GLOB):   # parts of another chunking (e.g. an older version)
+        try:
+            index = int(stale.stem.split("-")[1])
+        except (IndexError, ValueError):
+            continue
+        if index >= len(bounds):
+            stale.unlink()
+    for c, (a, b) in enumerate(bounds):
+        key = store.chunk_key(pts.iloc[a:b], spec_hash, solver_h)
+        path = store.part_path(sweep_dir, c)
+        if path.exists():
+            meta = store.read_part_meta(path)
+            if meta is not None and meta.get("key") == key:
+                skipped += 1
+                _add_counts(counts, store.summarize(pd.read_parquet(path, columns=["status"])))
+                continue
+            path.unlink()   # stale or torn: recompute
+        todo.append((c, a, b, key))
+    return todo, skipped, counts
 
 
 def _add_counts(total: dict, part: dict) -> None:

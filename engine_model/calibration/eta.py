@@ -18,7 +18,7 @@ from engine_model.calibration.identify import CHI2_95_1DOF, Identification, chi2
 DEFAULT_ETAS = tuple(np.round(np.arange(0.85, 1.0001, 0.01), 3))
 
 
-def eta_sensitivity(ident: Identification, etas=DEFAULT_ETAS, use_airflow: bool = False) -> pd.DataFrame:
+def eta_sensitivity(ident: Identification, etas=DEFAULT_ETAS) -> pd.DataFrame:
     """Identified parameters versus the assumed eta_trans (post-processing; eta only scales the target).
 
     Returns one row per (bench point, eta_trans) with the columns of :func:`identify_point`.
@@ -26,7 +26,7 @@ def eta_sensitivity(ident: Identification, etas=DEFAULT_ETAS, use_airflow: bool 
     rows = []
     for pid, ps in ident.surfaces.items():
         for eta in etas:
-            r = identify_point(ps, float(eta), ident.tol, use_airflow)
+            r = identify_point(ps, float(eta), ident.tol)
             rows.append({"point_id": pid, "speed_rpm": float(ps.row["speed_rpm"]),
                          "throttle_pct": float(ps.row["throttle_pct"]), "eta_trans": float(eta), **r})
     return pd.DataFrame(rows)
@@ -111,7 +111,7 @@ class JointFit:
         return "Joint fit with a shared eta_trans per throttle: " + "; ".join(parts) + "."
 
 
-def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
+def joint_fit(ident: Identification, etas=None,
               power_meas: dict | None = None) -> JointFit:
     """Profile likelihood of a shared eta_trans across all points of each throttle setting.
 
@@ -122,7 +122,7 @@ def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
     etas = np.round(np.arange(0.85, 1.0001, 0.0025), 4) if etas is None else np.asarray(etas, float)
     rows = []
     for pid, ps in ident.surfaces.items():
-        terms = terms_used(ps.row, use_airflow)
+        terms = terms_used(ps.row)
         pm = None if power_meas is None else power_meas[pid]
         for eta in etas:
             c = sum(chi2_terms(ps, float(eta), ident.tol, terms, pm).values())
@@ -131,7 +131,7 @@ def joint_fit(ident: Identification, etas=None, use_airflow: bool = False,
     per = pd.DataFrame(rows)
     prof = per.groupby(["throttle_pct", "eta_trans"], as_index=False).agg(chi2=("chi2", "sum"),
                                                                           points=("point_id", "nunique"))
-    informative = {pid: bool(set(terms_used(ps.row, use_airflow)) - {"power", "pmax", "ca50"})
+    informative = {pid: bool(set(terms_used(ps.row)) - {"power", "pmax", "ca50"})
                    for pid, ps in ident.surfaces.items()}
     th_info = per.assign(info=per["point_id"].map(informative)).groupby("throttle_pct")["info"].any()
     out = []

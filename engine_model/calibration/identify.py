@@ -71,7 +71,7 @@ class Tolerances:
     """Standard deviations of the identification terms (see module docstring).
 
     power_rel [-], ca50_target_deg [deg ATDC], ca50_sigma_deg [deg],
-    exhaust_temp_k [K], bsfc_rel [-], fuel_rel [-], air_rel [-],
+    exhaust_temp_k [K], bsfc_rel [-], fuel_rel [-],
     pmax_max_bar [bar] (plausibility limit), pmax_sigma_bar [bar].
     """
 
@@ -81,7 +81,6 @@ class Tolerances:
     exhaust_temp_k: float = 5.0        # [P] exhaust temperature +-5 K
     bsfc_rel: float = 0.01             # [A] as power (BSFC is fuel over the same power)
     fuel_rel: float = 0.01             # [A] fuel meter ~1 % of reading
-    air_rel: float = 0.01              # [A] air meter ~1 % of reading
     # [A] Peak pressures of naturally aspirated SI engines at WOT lie around 60-90 bar (Heywood, ICE
     # Fundamentals, ch. 9 pressure data); the paper rejects the low-m branch for pressures "far from the
     # actual ones" (its Fig. 8).  Above 90 bar is counted implausible, with a 5 bar soft edge.
@@ -272,7 +271,7 @@ def _measured(row, col):
     return float(row[col]) if col in row.index and pd.notna(row[col]) else math.nan
 
 
-def terms_used(row: pd.Series, use_airflow: bool = False) -> list[str]:
+def terms_used(row: pd.Series) -> list[str]:
     """The chi2 terms that apply to a bench row (depends on present columns and ``at_mbt``)."""
     t = ["power", "pmax"]
     if bool(row.get("at_mbt", True)):
@@ -280,8 +279,6 @@ def terms_used(row: pd.Series, use_airflow: bool = False) -> list[str]:
     for name, col in (("exhaust_temp", "exhaust_temp_k"), ("bsfc", "bsfc_g_kwh"), ("fuel", "fuel_mass_flow_kg_h")):
         if math.isfinite(_measured(row, col)):
             t.append(name)
-    if use_airflow:
-        t.append("air")
     return t
 
 
@@ -307,9 +304,6 @@ def chi2_terms(ps: PointSurfaces, eta_trans: float, tol: Tolerances, terms, powe
     if "fuel" in terms:
         tf = _measured(row, "fuel_mass_flow_kg_h")
         out["fuel"] = ((f["fuel_mass_flow_kg_h"] - tf) / (tol.fuel_rel * tf)) ** 2
-    if "air" in terms:
-        ta = float(row["air_mass_flow_kg_h"])
-        out["air"] = ((f["air_mass_flow_kg_h"] - ta) / (tol.air_rel * ta)) ** 2
     return out
 
 
@@ -319,10 +313,10 @@ def branch_sign(ps: PointSurfaces) -> np.ndarray:
 
 
 def identify_point(ps: PointSurfaces, eta_trans: float = 0.95, tol: Tolerances = Tolerances(),
-                   use_airflow: bool = False, terms=None, power_meas_kw=None) -> dict:
+                   terms=None, power_meas_kw=None) -> dict:
     """Most probable (BDUR10-90, m) of one point, its 95 % region, residuals and the ridge mirror."""
     row = ps.row
-    terms = list(terms) if terms is not None else terms_used(row, use_airflow)
+    terms = list(terms) if terms is not None else terms_used(row)
     parts = chi2_terms(ps, eta_trans, tol, terms, power_meas_kw)
     chi2 = sum(parts.values())
     chi2 = np.where(np.isfinite(chi2), chi2, np.inf)
@@ -414,7 +408,7 @@ def _blocks(meas: pd.DataFrame, results: pd.DataFrame):
 
 
 def identify(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95, tol: Tolerances = Tolerances(),
-             surface: str = "spline", use_airflow: bool = False) -> Identification:
+             surface: str = "spline") -> Identification:
     """Identify (BDUR10-90, m) at every bench point from the simulated identification sweep.
 
     Parameters
@@ -427,9 +421,6 @@ def identify(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95,
         Transmission efficiency [-]: measured power / eta_trans is the crank target.
     tol : Tolerances
     surface : {"spline", "cubic", "quadratic"}
-    use_airflow : bool
-        Add the measured airflow as a term (off by default: the airflow match already used it).
-
     Returns
     -------
     Identification
@@ -457,7 +448,7 @@ def identify(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float = 0.95,
             rows.append({**base, "status": f"failed: {exc}", "fit_ok": False})
             continue
         surfs[ps.point_id] = ps
-        r = identify_point(ps, eta_trans, tol, use_airflow)
+        r = identify_point(ps, eta_trans, tol)
         r.update({"surface": ps.kind, "failed_nodes": ps.failed_nodes, "rs_power_r2": ps.rs_power["r2"],
                   "rs_power_rms_kw": ps.rs_power["rms"]})
         rows.append({**base, **r})

@@ -285,73 +285,99 @@ def identify_sweeps(meas: pd.DataFrame, results: pd.DataFrame, eta_trans: float 
                         "status": f"skipped: {len(ok)} runnable spark(s) of {len(g)} "
                                   f"({g['status'].value_counts().to_dict()})"})
             continue
-        s_mean = base["spark_deg_btdc"]
-        pts, shape = [], None
-        for _, row in ok.iterrows():
-            row = row.copy()
-            row["at_mbt"] = False
-            ps = point_surfaces(row, blocks[str(row["point_id"])], surface)
-            if shape is None:
-                shape, fb, fm = ps.fine["brake_power_kw"].shape, ps.fine_b, ps.fine_m
-            elif ps.fine["brake_power_kw"].shape != shape or not (np.allclose(ps.fine_b, fb)
-                                                                   and np.allclose(ps.fine_m, fm)):
-                raise ValueError(f"identify_sweeps: op_id {oid!r}, point {row['point_id']!r}: its (BDUR10-90, m) "
-                                 "grid differs from the sweep's other points; use one identification_plan grid")
-            use = [t for t in terms_used(row) if terms is None or t in terms]
-            pts.append((row, ps, chi2_terms(ps, eta_trans, tol, use), float(row["spark_deg_btdc"]) - s_mean))
-        FB, FM = np.meshgrid(fb, fm, indexing="ij")
+        pts, fb, fm = _sweep_surfaces(oid, ok, blocks, base["spark_deg_btdc"], eta_trans, tol, surface, terms)
         mbt_used = bool(use_mbt and math.isfinite(mbt))
-        best = None
-        for kb, km in spark_slopes:
-            total, parts_sum, idx = 0.0, {}, []
-            for row, ps, parts, ds in pts:
-                ib, jm = _shifted_index(fb, fm, FB * (1 + kb * ds), FM * (1 + km * ds))
-                idx.append((ib, jm))
-                for k, v in parts.items():
-                    vv = _lookup(v, ib, jm)
-                    parts_sum[k] = parts_sum.get(k, 0.0) + vv
-                    total = total + vv
-            if mbt_used:
-                ds = mbt - s_mean
-                ca50 = wiebe.burn_angles(mbt, FB * (1 + kb * ds), FM * (1 + km * ds))["ca50_deg_atdc"]
-                sig = math.hypot(tol.ca50_sigma_deg, mbt_spark_sigma_deg)
-                parts_sum["ca50"] = ((ca50 - tol.ca50_target_deg) / sig) ** 2
-                total = total + parts_sum["ca50"]
-            chi2 = np.where(np.isfinite(total), total, np.inf)
-            c = float(chi2.min())
-            if best is None or c < best[0]:
-                best = (c, chi2, parts_sum, idx, (kb, km))
-        cmin, chi2, parts_sum, idx, (kb, km) = best
-        i, j = np.unravel_index(int(np.argmin(chi2)), chi2.shape)
-        ri, rj = np.nonzero(chi2 <= cmin + CHI2_95_2DOF)
-        # tolerance check at the joint optimum, point by point (at each point's own shifted parameters)
-        bad = []
-        for (row, ps, _, _), (ib, jm) in zip(pts, idx):
-            a, b_ = np.round(ib[i, j]).astype(int), np.round(jm[i, j]).astype(int)
-            target = float(row["brake_power_kw"]) / eta_trans
-            perr = ps.fine["brake_power_kw"][a, b_] / target - 1.0
-            if abs(perr) > tol.power_rel:
-                bad.append(f"{row['point_id']} power {100 * perr:+.1f} %")
-            if pd.notna(row.get("exhaust_temp_k")):
-                terr = ps.fine["exhaust_temp_k"][a, b_] - float(row["exhaust_temp_k"])
-                if abs(terr) > tol.exhaust_temp_k:
-                    bad.append(f"{row['point_id']} exhaust T {terr:+.0f} K")
-        # a 1-sigma tolerance is missed by ~1/3 of honest readings; the sweep fails if more than half miss
-        n_chk = len(pts) * (2 if "exhaust_temp_k" in ok.columns else 1)
-        fit_ok = len(bad) <= n_chk // 2
-        status = "ok" if fit_ok else "tolerance missed: " + "; ".join(bad)
-        if why != "ok":
-            status += f" (MBT {why})"
-        edge = bool(ri.min() == 0 or ri.max() == len(fb) - 1 or rj.min() == 0 or rj.max() == len(fm) - 1)
-        out.append({**base, "bdur_10_90_deg": float(fb[i]), "wiebe_m": float(fm[j]),
-                    "bdur_10_90_deg_lo": float(fb[ri.min()]), "bdur_10_90_deg_hi": float(fb[ri.max()]),
-                    "wiebe_m_lo": float(fm[rj.min()]), "wiebe_m_hi": float(fm[rj.max()]), "chi2_min": cmin,
-                    "mbt_used": mbt_used, "fit_ok": bool(fit_ok), "status": status, "region_at_edge": edge,
-                    "bdur_spark_slope_per_deg": kb, "m_spark_slope_per_deg": km,
-                    "terms": ",".join(parts_sum), **{f"chi2_{k}": float(v[i, j]) for k, v in parts_sum.items()}})
+        best = _best_slopes(pts, fb, fm, spark_slopes, mbt if mbt_used else math.nan, base["spark_deg_btdc"],
+                            tol, mbt_spark_sigma_deg)
+        out.append({**base, "mbt_used": mbt_used, **_sweep_result(best, pts, fb, fm, ok, eta_trans, tol, why)})
     table = pd.DataFrame(out)
     for c in SWEEP_COLUMNS:
         if c not in table.columns:
             table[c] = np.nan
     return table[list(SWEEP_COLUMNS) + [c for c in table.columns if c not in SWEEP_COLUMNS]]
 
+
+def _sweep_surfaces(oid, ok: pd.DataFrame, blocks: dict, s_mean: float, eta_trans: float, tol: Tolerances,
+                    surface: str, terms) -> tuple[list, np.ndarray, np.ndarray]:
+    """Per runnable point of one sweep: (row, surfaces, chi2 terms, spark offset from the sweep's mean).
+
+    Also returns the common fine (BDUR10-90, m) mesh; every point of a sweep must share one grid.
+    """
+    pts, shape = [], None
+    for _, row in ok.iterrows():
+        row = row.copy()
+        row["at_mbt"] = False
+        ps = point_surfaces(row, blocks[str(row["point_id"])], surface)
+        if shape is None:
+            shape, fb, fm = ps.fine["brake_power_kw"].shape, ps.fine_b, ps.fine_m
+        elif ps.fine["brake_power_kw"].shape != shape or not (np.allclose(ps.fine_b, fb)
+                                                               and np.allclose(ps.fine_m, fm)):
+            raise ValueError(f"identify_sweeps: op_id {oid!r}, point {row['point_id']!r}: its (BDUR10-90, m) "
+                             "grid differs from the sweep's other points; use one identification_plan grid")
+        use = [t for t in terms_used(row) if terms is None or t in terms]
+        pts.append((row, ps, chi2_terms(ps, eta_trans, tol, use), float(row["spark_deg_btdc"]) - s_mean))
+    return pts, fb, fm
+
+
+def _best_slopes(pts: list, fb: np.ndarray, fm: np.ndarray, spark_slopes, mbt: float, s_mean: float,
+                 tol: Tolerances, mbt_spark_sigma_deg: float):
+    """The joint chi2 over the sweep for each candidate spark slope; the slope pair with the lowest minimum.
+
+    ``mbt`` NaN: no CA50-at-MBT term.  Returns (chi2_min, chi2 plane, chi2 per term, per-point shifted
+    indices, (kb, km)).
+    """
+    FB, FM = np.meshgrid(fb, fm, indexing="ij")
+    best = None
+    for kb, km in spark_slopes:
+        total, parts_sum, idx = 0.0, {}, []
+        for row, ps, parts, ds in pts:
+            ib, jm = _shifted_index(fb, fm, FB * (1 + kb * ds), FM * (1 + km * ds))
+            idx.append((ib, jm))
+            for k, v in parts.items():
+                vv = _lookup(v, ib, jm)
+                parts_sum[k] = parts_sum.get(k, 0.0) + vv
+                total = total + vv
+        if math.isfinite(mbt):
+            ds = mbt - s_mean
+            ca50 = wiebe.burn_angles(mbt, FB * (1 + kb * ds), FM * (1 + km * ds))["ca50_deg_atdc"]
+            sig = math.hypot(tol.ca50_sigma_deg, mbt_spark_sigma_deg)
+            parts_sum["ca50"] = ((ca50 - tol.ca50_target_deg) / sig) ** 2
+            total = total + parts_sum["ca50"]
+        chi2 = np.where(np.isfinite(total), total, np.inf)
+        c = float(chi2.min())
+        if best is None or c < best[0]:
+            best = (c, chi2, parts_sum, idx, (kb, km))
+    return best
+
+
+def _sweep_result(best, pts: list, fb: np.ndarray, fm: np.ndarray, ok: pd.DataFrame, eta_trans: float,
+                  tol: Tolerances, why: str) -> dict:
+    """The sweep's row: optimum, 95 % region, tolerance check point by point at the joint optimum."""
+    cmin, chi2, parts_sum, idx, (kb, km) = best
+    i, j = np.unravel_index(int(np.argmin(chi2)), chi2.shape)
+    ri, rj = np.nonzero(chi2 <= cmin + CHI2_95_2DOF)
+    # tolerance check at the joint optimum, point by point (at each point's own shifted parameters)
+    bad = []
+    for (row, ps, _, _), (ib, jm) in zip(pts, idx):
+        a, b_ = np.round(ib[i, j]).astype(int), np.round(jm[i, j]).astype(int)
+        target = float(row["brake_power_kw"]) / eta_trans
+        perr = ps.fine["brake_power_kw"][a, b_] / target - 1.0
+        if abs(perr) > tol.power_rel:
+            bad.append(f"{row['point_id']} power {100 * perr:+.1f} %")
+        if pd.notna(row.get("exhaust_temp_k")):
+            terr = ps.fine["exhaust_temp_k"][a, b_] - float(row["exhaust_temp_k"])
+            if abs(terr) > tol.exhaust_temp_k:
+                bad.append(f"{row['point_id']} exhaust T {terr:+.0f} K")
+    # a 1-sigma tolerance is missed by ~1/3 of honest readings; the sweep fails if more than half miss
+    n_chk = len(pts) * (2 if "exhaust_temp_k" in ok.columns else 1)
+    fit_ok = len(bad) <= n_chk // 2
+    status = "ok" if fit_ok else "tolerance missed: " + "; ".join(bad)
+    if why != "ok":
+        status += f" (MBT {why})"
+    edge = bool(ri.min() == 0 or ri.max() == len(fb) - 1 or rj.min() == 0 or rj.max() == len(fm) - 1)
+    return {"bdur_10_90_deg": float(fb[i]), "wiebe_m": float(fm[j]),
+            "bdur_10_90_deg_lo": float(fb[ri.min()]), "bdur_10_90_deg_hi": float(fb[ri.max()]),
+            "wiebe_m_lo": float(fm[rj.min()]), "wiebe_m_hi": float(fm[rj.max()]), "chi2_min": cmin,
+            "fit_ok": bool(fit_ok), "status": status, "region_at_edge": edge,
+            "bdur_spark_slope_per_deg": kb, "m_spark_slope_per_deg": km,
+            "terms": ",".join(parts_sum), **{f"chi2_{k}": float(v[i, j]) for k, v in parts_sum.items()}}

@@ -83,43 +83,25 @@ def ool_bump(measured: pd.DataFrame, amplitude: float = OOL_AMPLITUDE, center_rp
     return out
 
 
-#: Benchmark DOE designs: ``"sobol"`` (default: scattered points, one spark each), ``"sweep"`` (the
-#: paper's bench procedure: a spark sweep per operating point) and ``"discriminating"`` (the points of a
-#: candidate pool on which the library's effects differ most, :func:`engine_model.gap.design.discrimination_plan`).  The sweep design was tried to separate the
-#: torque-loss effects and measured worse (docs/sections/gap.md), so it is an option, not the default.
-DESIGNS = ("sweep", "sobol", "discriminating")
-
-#: Spark sweep of the benchmark DOE: steps per operating point and their spacing [deg CA].  4 steps of 4 deg
-#: span 12 deg up to the MBT prior (or the knock back-off), the paper's "start 10-15 deg retarded, advance to
-#: MBT or knock" [P].
-SWEEP_STEPS = 4
-SWEEP_STEP_DEG = 4.0
-
-
+#: Benchmark DOE designs: ``"discriminating"`` (the points of a candidate pool on which the library's effects
+#: differ most, :func:`engine_model.gap.design.discrimination_plan`) and ``"sobol"`` (scattered points, one spark
+#: each; cheaper to plan, used by the CI test).
+DESIGNS = ("discriminating", "sobol")
 
 
 def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
                    evaluate: Callable | None = None, solver: SolverSettings = BENCH_SOLVER,
                    knock_target: float = 0.85, retards: Sequence[float] = (0.0, 4.0, 8.0, 12.0, 16.0),
-                   design: str = "sobol", sweep_steps: int = SWEEP_STEPS,
-                   sweep_step_deg: float = SWEEP_STEP_DEG) -> pd.DataFrame:
-    """A realistic small dyno DOE of ``n`` points over 6000-12500 rpm x 30-100 % throttle.
+                   design: str = DEFAULT_DESIGN) -> pd.DataFrame:
+    """A realistic small dyno DOE of ``n`` points.
 
-    ``design="sweep"``: ``n // sweep_steps`` operating points (scrambled Sobol' over speed x
-    throttle: one point per speed stratum), each run as a spark sweep of ``sweep_steps`` sparks
-    ``sweep_step_deg`` apart, from retarded up to the MBT prior -- or, where the model (prior burn)
-    predicts a knock index above ``knock_target`` there, up to the spark an operator backs off to in
-    steps of 4 deg.  This is the paper's bench procedure (start retarded, advance to MBT or knock); the
-    curvature of torque over spark pins the burn duration, which a scattered design leaves free to trade
-    against the torque level.  Steps that still knock on the bench are aborted there (flagged).
-
-    ``design="discriminating"``: ``n`` points chosen from a 160-point candidate pool (5000-12500 rpm,
-    spark 0-8 deg below the MBT prior, same knock back-off) to maximise the smallest model-discrimination
+    ``design="discriminating"`` (default): ``n`` points chosen from a 160-point candidate pool (5000-12500 rpm,
+    spark 0-8 deg below the MBT prior, knock back-off) to maximise the smallest model-discrimination
     distance between the library's effects (:func:`engine_model.gap.design.discrimination_plan`; base
     model only, no bench data).
 
-    ``design="sobol"`` (default): ``n`` Sobol' points, spark = MBT prior minus 0-6 deg, retarded in 4 deg steps
-    where the model predicts knock (the earlier benchmark design).
+    ``design="sobol"``: ``n`` Sobol' points over 6000-12500 rpm x 30-100 % throttle, spark = MBT prior minus
+    0-6 deg, retarded in 4 deg steps where the model (prior burn) predicts a knock index above ``knock_target``.
 
     Returns
     -------
@@ -137,34 +119,14 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     if design == "discriminating":
         plan, _ = discrimination_plan(n, spec, ev, seed=seed)
         return plan
-    if design == "sobol":
-        plan = doe.sobol(n, bounds=bounds, seed=seed)
-        rng = np.random.default_rng(seed + 11)
-        spark0 = plan["spark_deg_btdc"].to_numpy(float) - rng.uniform(0.0, 6.0, len(plan))
-        chosen = knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
-        plan["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
-        plan["knock_retard_deg"] = chosen
-        plan["op_id"] = plan["point_id"]
-        return plan
-    if not (isinstance(sweep_steps, (int, np.integer)) and sweep_steps >= 3):
-        raise ValueError(f"benchmark_plan: sweep_steps = {sweep_steps!r} must be an integer >= 3 (a curvature)")
-    if not sweep_step_deg > 0:
-        raise ValueError(f"benchmark_plan: sweep_step_deg = {sweep_step_deg!r} must be > 0")
-    n_ops = n // sweep_steps
-    if n_ops < 2:
-        raise ValueError(f"benchmark_plan: n = {n} gives fewer than 2 operating points of {sweep_steps} sparks")
-    ops = doe.sobol(n_ops, bounds=bounds, seed=seed)
-    top = ops["spark_deg_btdc"].to_numpy(float)
-    chosen = knock_backoff(ops, top, ev, knock_target, retards)
-    rows = []
-    for i, op in ops.iterrows():
-        for k in range(sweep_steps):
-            ret = chosen[i] + sweep_step_deg * (sweep_steps - 1 - k)
-            rows.append({"point_id": f"{op['point_id']}-s{k}", "speed_rpm": op["speed_rpm"],
-                         "throttle_pct": op["throttle_pct"], "spark_deg_btdc": round(top[i] - ret, 1),
-                         "lambda": op["lambda"], "op_id": op["point_id"], "sweep_step": k,
-                         "knock_retard_deg": chosen[i], "design": "spark_sweep"})
-    return pd.DataFrame(rows)
+    plan = doe.sobol(n, bounds=bounds, seed=seed)
+    rng = np.random.default_rng(seed + 11)
+    spark0 = plan["spark_deg_btdc"].to_numpy(float) - rng.uniform(0.0, 6.0, len(plan))
+    chosen = knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
+    plan["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
+    plan["knock_retard_deg"] = chosen
+    plan["op_id"] = plan["point_id"]
+    return plan
 
 
 
@@ -196,8 +158,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
                   base: BaseModel | None = None, base_iterations: int = 3, k_folds: int = 5, n_noise: int = 200,
                   verify: bool = True, candidates: Sequence[str] | None = None,
                   progress: Callable[[str], None] | None = None, design: str = DEFAULT_DESIGN,
-                  seed_start: int = 0, bench_backoff: bool = True, plan: pd.DataFrame | None = None,
-                  error_model: str = DEFAULT_ERROR_MODEL, speed_curvature: bool = True) -> dict:
+                  seed_start: int = 0, plan: pd.DataFrame | None = None,
+                  error_model: str = DEFAULT_ERROR_MODEL) -> dict:
     """Run the withheld-effect benchmark.
 
     Parameters
@@ -212,10 +174,10 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     n_points : int
         DOE size (simulated bench points).
     design : str
-        ``"discriminating"`` (default), ``"sobol"`` or ``"sweep"``, see :func:`benchmark_plan`.
+        ``"discriminating"`` (default) or ``"sobol"``, see :func:`benchmark_plan`.
     base : BaseModel, optional
-        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (with
-        ``speed_curvature``).
+        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (the
+        burn's speed curvature where the plan carries it).
     evaluate : callable(plan) -> results, optional
         Default: in-process ``simulate`` with ``solver``.
     verify : bool
@@ -229,13 +191,11 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         ``benchmark_plan(n_points, plan_seed, design=design)``.
     error_model : str
         The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).
-    speed_curvature : bool
-        Let the base carry the burn's speed curvature where the design supports it (``choose_base``; on by
-        default since 2026-11-25, with the discriminating design and the burn-scatter error model).
-    bench_backoff : bool
-        The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each
-        trial is diagnosed on the plan as its engine ran it (one linearisation of the union of these
-        plans).  False: knocking points are lost (the earlier benchmark).
+
+    Notes
+    -----
+    The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each trial is
+    diagnosed on the plan as its engine ran it (one linearisation of the union of these plans).
 
     Returns
     -------
@@ -271,10 +231,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     law = BurnLaw()
     for c in cases:
         vb = VirtualBench(spec=spec, law=law, effects=c.effects or None, noise=NoiseModel.none(), solver=solver)
-        if bench_backoff:
-            plan_c, m = measure_with_backoff(vb, plan, ev)
-        else:
-            plan_c, m = plan, vb.measure(plan, ev)
+        plan_c, m = measure_with_backoff(vb, plan, ev)
         if c.effect == OOL_EFFECT:
             m = ool_bump(m)
         truth[(c.effect, c.magnitude)] = m
@@ -286,7 +243,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     null = truth[("none", 0.0)]
     null_plan = plans[("none", 0.0)]
     # the base the data as run can carry (the bench back-off spreads the sparks)
-    base = choose_base(null_plan, speed_curvature) if base is None else base
+    base = choose_base(null_plan, speed_curvature=True) if base is None else base
     say(f"base: {base.params}")
     theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
     t_cal = time.perf_counter() - t0 - t_truth

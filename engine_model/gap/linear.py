@@ -277,7 +277,7 @@ def _ok_mask(res: pd.DataFrame) -> tuple[np.ndarray, list[str]]:
 def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFrame],
               base: BaseModel = BaseModel(), effects: Sequence[str] | None = None, theta: dict | None = None,
               spec: EngineSpec | None = None, eta_base: float = ETA_TRANS_BASE,
-              outputs: Sequence[str] = MODEL_OUTPUTS, include_base: bool = True) -> Linearisation:
+              outputs: Sequence[str] = MODEL_OUTPUTS) -> Linearisation:
     """Reference outputs and finite-difference Jacobian from one ``evaluate`` batch.
 
     Parameters
@@ -295,8 +295,6 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
     eta_base : float
         Transmission efficiency of the base model [-].
     outputs : sequence of str
-    include_base : bool
-        Also step the base parameters.
 
     Returns
     -------
@@ -310,10 +308,9 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
     th.update(theta or {})
     ref = base.plan(pts, th, spec)
     cases: list[tuple[str, str, float, pd.DataFrame, dict | None]] = [("ref", "", 0.0, ref, None)]
-    if include_base:
-        for p in base.params:
-            step = BASE_PARAMS[p].step
-            cases.append(("base", p, step, base.plan(pts, {**th, p: th[p] + step}, spec), None))
+    for p in base.params:
+        step = BASE_PARAMS[p].step
+        cases.append(("base", p, step, base.plan(pts, {**th, p: th[p] + step}, spec), None))
     for e in names:
         eff = get_effect(e)
         for prm in eff.params:

@@ -95,14 +95,11 @@ def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_d
 @flow(name="gap-benchmark", log_prints=False, validate_parameters=False)
 def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str | None = None,
                        workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
-                       progress: bool = False, seed_start: int = 0, design: str = "discriminating",
-                       error_model: str | None = None, speed_curvature: bool = True) -> dict:
+                       progress: bool = False, seed_start: int = 0, design: str = "discriminating") -> dict:
     """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report).
 
     Noise seeds ``seed_start .. seed_start + seeds - 1`` (fresh seeds check rules chosen on earlier ones);
-    ``design`` 'discriminating' (default), 'sobol' or 'sweep' (see ``engine_model.gap.benchmark.benchmark_plan``);
-    ``error_model`` of the diagnosis (``engine_model.gap.covariance.ERROR_MODELS``; None: its default);
-    ``speed_curvature``: the base may carry the burn's speed curvature (``engine_model.gap.api.choose_base``).
+    ``design`` 'discriminating' (default) or 'sobol' (see ``engine_model.gap.benchmark.benchmark_plan``).
     """
     from engine_model import load_spec
     from engine_model.gap.bench_procedure import BENCH_SOLVER
@@ -113,9 +110,6 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
     with shared_cluster(workers, dask_address) as addr:
         ev = SweepEvaluator(Path(out) / "sweeps", addr, spec=spec, step_deg=BENCH_SOLVER.step_deg,
                             tolerance=BENCH_SOLVER.tolerance, label="bench", progress=progress)
-        if error_model is not None:
-            kw["error_model"] = error_model
-        kw["speed_curvature"] = bool(speed_curvature)
         res = run_benchmark(seeds=seeds, spec=load_spec(spec), evaluate=ev, progress=print, seed_start=seed_start,
                             design=design, **kw)
     paths = write_benchmark_report(res, out)

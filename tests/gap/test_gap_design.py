@@ -10,7 +10,7 @@ import pytest
 
 from engine_model import priors
 from engine_model.gap.api import choose_base
-from engine_model.gap.benchmark import SWEEP_STEP_DEG, SWEEP_STEPS, benchmark_plan
+from engine_model.gap.benchmark import benchmark_plan
 from engine_model.gap.fitting import make_folds, operating_point_groups
 from engine_model.bench import load_bench
 
@@ -28,29 +28,22 @@ def _knock_model(limit_offset):
     return ev
 
 
-def test_sweep_plan_layout_and_knock_backoff():
+def test_sobol_plan_knock_backoff():
     # knock limit 5 deg below the MBT prior below 9000 rpm, none (30 deg beyond) above
     ev = _knock_model(lambda n: np.where(n < 9000.0, 5.0, -30.0))
-    plan = benchmark_plan(32, seed=0, evaluate=ev, design="sweep")
-    assert len(plan) == 32
-    assert plan["point_id"].is_unique
-    ops = plan.groupby("op_id", sort=False)
-    assert ops.ngroups == 32 // SWEEP_STEPS
-    for _, g in ops:
-        assert g["speed_rpm"].nunique() == 1 and g["throttle_pct"].nunique() == 1 and g["lambda"].nunique() == 1
-        s = g.sort_values("sweep_step")["spark_deg_btdc"].to_numpy()
-        np.testing.assert_allclose(np.diff(s), SWEEP_STEP_DEG, atol=0.11)   # advancing, rounded to 0.1 deg
-        n, t = g["speed_rpm"].iloc[0], g["throttle_pct"].iloc[0]
-        top = float(priors.spark_estimate(n, t))
-        # the operator backs off in 4 deg steps until the model's knock index is below 0.85:
-        # limit 5 deg below MBT -> index 1.5 at MBT, 1.1 at -4, 0.7 at -8 -> top of the sweep at MBT - 8
-        expect = 8.0 if n < 9000.0 else 0.0
-        assert g["knock_retard_deg"].iloc[0] == expect
-        assert s[-1] == pytest.approx(top - expect, abs=0.06)
-    # one operating point per speed stratum (scrambled Sobol'): speeds spread over the whole range
-    sp = np.sort(plan.groupby("op_id")["speed_rpm"].first().to_numpy())
-    assert sp[0] < 6000 + 6500 / 8 and sp[-1] > 12500 - 6500 / 8
-    assert np.all(np.diff(np.floor((sp - 6000.0) / (6500.0 / 8))) == 1)
+    plan = benchmark_plan(32, seed=0, evaluate=ev, design="sobol")
+    assert len(plan) == 32 and plan["point_id"].is_unique and plan["op_id"].is_unique
+    n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
+    top = np.atleast_1d(priors.spark_estimate(n, t))
+    # the operator backs off in 4 deg steps until the model's knock index is below 0.85: with the limit 5 deg
+    # below MBT the index is 1.1-1.5 at 0-6 deg below the prior, 0.7-1.1 at -4 more, below 0.85 at -8 at the most
+    low = n < 9000.0
+    assert set(plan.loc[low, "knock_retard_deg"]) <= {4.0, 8.0} and (plan.loc[~low, "knock_retard_deg"] == 0).all()
+    ki = 1.0 + 0.1 * (plan["spark_deg_btdc"].to_numpy() - (top - np.where(low, 5.0, -30.0)))
+    assert (ki[low] < 0.85 + 0.01).all()
+    # sparks 0-6 deg below the prior before the back-off
+    back = plan["spark_deg_btdc"].to_numpy() + plan["knock_retard_deg"].to_numpy()
+    assert ((top - back) >= -0.06).all() and ((top - back) <= 6.06).all()
 
 
 def test_sobol_design_kept_and_bad_design_rejected():
@@ -59,8 +52,6 @@ def test_sobol_design_kept_and_bad_design_rejected():
     assert len(plan) == 12 and plan["op_id"].is_unique
     with pytest.raises(ValueError, match="design 'grid' unknown"):
         benchmark_plan(12, evaluate=ev, design="grid")
-    with pytest.raises(ValueError, match="sweep_steps"):
-        benchmark_plan(12, evaluate=ev, design="sweep", sweep_steps=2)
 
 
 def test_folds_keep_a_sweep_together():
@@ -80,7 +71,11 @@ def test_folds_keep_a_sweep_together():
 
 def test_base_gets_the_spark_slope_only_where_the_sparks_span_it():
     ev = _knock_model(lambda n: np.full_like(n, -30.0))
-    sweep = choose_base(benchmark_plan(32, evaluate=ev, design="sweep"))
+    ops = benchmark_plan(8, evaluate=ev, design="sobol")
+    sweeps = pd.concat([ops.assign(spark_deg_btdc=ops["spark_deg_btdc"] - d,
+                                   point_id=ops["point_id"] + f"-s{k}") for k, d in enumerate((12, 8, 4, 0))],
+                       ignore_index=True)                     # 4-spark sweeps over 12 deg at 8 operating points
+    sweep = choose_base(sweeps)
     assert sweep.params == ("bdur_offset_deg", "bdur_speed_deg_per_krpm", "bdur_load_deg", "bdur_spark_deg_per_10deg")
     # scattered, no knock: sparks 0-6 deg below the prior (span < 6 deg) -> no spark term
     plan = benchmark_plan(32, evaluate=ev, design="sobol")
