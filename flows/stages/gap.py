@@ -28,6 +28,7 @@ from prefect import flow  # noqa: E402
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.gap.api import diagnose_bench  # noqa: E402
+from engine_model.gap.bench_procedure import LINEARISATION_TOLERANCE  # noqa: E402
 from engine_model.gap.report import write_gap_report  # noqa: E402
 from engine_model.gap.residuals import check_bench_outputs  # noqa: E402
 from engine_model.io import read_table, write_json  # noqa: E402
@@ -51,7 +52,7 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
     t0 = time.perf_counter()
     ctx.work.mkdir(parents=True, exist_ok=True)
     spec = ctx.engine.spec
-    ev = ctx.evaluator("gap")
+    ev = ctx.evaluator("gap", tolerance=LINEARISATION_TOLERANCE)
     d, info = diagnose_bench(ctx.bench, ev, spec=spec, n_noise=n_noise, source=ctx.bench_source)
     notes = [f"Bench: {ctx.bench_source}. Engine: {ctx.engine.source}, calibrated values "
              f"{ctx.engine.overrides or 'none'}. Base calibration parameters: {info['theta']} (base: {info['base']}). "

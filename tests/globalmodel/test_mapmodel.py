@@ -51,29 +51,51 @@ def fitted():
     return train, MapModel(factors=FACTORS3).fit(train, spec=default_spec())
 
 
-def test_recovers_the_truth_law_below_the_identification_noise(fitted):
-    # 64 Sobol points with identification noise sigma = 1.0 deg (BDUR) and 0.3 (m): a model that averages the
-    # noise instead of following it must predict the *truth* on unseen points better than one identification
-    # does, i.e. held-out RMSE < sigma.  Measured: 0.78 deg and 0.15.
-    _, m = fitted
+#: Noise seeds of the recovery check.  Measured over seeds 0-11: held-out RMSE against the law 0.50-0.86 deg /
+#: 0.13-0.26 (BDUR10-90 / m), z-score RMS 0.76-1.55 / 0.65-1.35, CV RMSE 1.05-1.56 / 0.31-0.44.
+RECOVERY_SEEDS = (0, 1, 2, 3)
+
+
+@pytest.fixture(scope="module")
+def recovery():
     test = around_mbt(512, 99)
-    p, y = m.predict(test), LAW.predict(test)
-    rmse_b = np.sqrt(np.mean((p["bdur_10_90_deg"] - y["bdur_10_90_deg"]) ** 2))
-    rmse_m = np.sqrt(np.mean((p["wiebe_m"] - y["wiebe_m"]) ** 2))
-    assert rmse_b < 1.0 and rmse_m < 0.3, (rmse_b, rmse_m)
+    y = LAW.predict(test)
+    rows = []
+    for seed in RECOVERY_SEEDS:
+        m = MapModel(factors=FACTORS3).fit(identified(64, seed), spec=default_spec())
+        p = m.predict(test)
+        row = {"seed": seed, "extrapolated": p["extrapolation"].mean(), "std_scale": min(m.std_scale_.values()),
+               "std_scale_max": max(m.std_scale_.values())}
+        for o, short in (("bdur_10_90_deg", "b"), ("wiebe_m", "m")):
+            e = p[o] - y[o]
+            row[f"rmse_{short}"] = float(np.sqrt(np.mean(e ** 2)))
+            row[f"z_{short}"] = float(np.sqrt(np.mean((e / p[f"{o}_std"]) ** 2)))
+            row[f"cv_{short}"] = min(m.cv_rmse_[o].values())
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def test_recovers_the_truth_law_below_the_identification_noise(recovery):
+    """64 Sobol points with identification noise sigma = 1.0 deg (BDUR) and 0.3 (m): a model that averages the
+    noise instead of following it predicts the *truth* on unseen points better than one identification does,
+    i.e. held-out RMSE < sigma, on every seed (12-seed worst: 0.86 deg, 0.26)."""
+    d = recovery
+    assert (d["rmse_b"] < 1.0).all() and (d["rmse_m"] < 0.3).all(), d
+    assert d["rmse_b"].mean() < 0.85 and d["rmse_m"].mean() < 0.25, d
     # the CV error estimates the error against *noisy* data: about sqrt(sigma^2 + model error^2)
-    cv = m.cv_rmse_
-    assert 0.9 < min(cv["bdur_10_90_deg"].values()) < 1.6
-    assert 0.27 < min(cv["wiebe_m"].values()) < 0.5
-    # the stated uncertainty is about right: z-score RMS within 0.5-2 (1 would be perfect).  The raw polynomial
-    # std (coefficient uncertainty of a model assumed correct) gave 2.3 / 1.5; the CV calibration
-    # (std_scale_) brings it to 1.55 / 0.65 here.
-    for o in ("bdur_10_90_deg", "wiebe_m"):
-        z = (p[o] - y[o]) / p[f"{o}_std"]
-        assert 0.5 < np.sqrt(np.mean(z**2)) < 2.0, o
-    assert all(0.5 <= v <= 5.0 for v in m.std_scale_.values())
+    assert d["cv_b"].between(0.9, 1.8).all() and d["cv_m"].between(0.27, 0.5).all(), d
+
+
+def test_stated_uncertainty_is_about_right(recovery):
+    """z-score RMS of the model's own std against the truth: within 0.5-2 on every seed and 0.7-1.5 on average
+    (1 would be perfect).  The raw polynomial std (coefficient uncertainty of a model assumed correct) gave
+    2.3 / 1.5 on seed 0; the CV calibration (``std_scale_``) brings it to 1.55 / 0.65 there."""
+    d = recovery
+    for c in ("z_b", "z_m"):
+        assert d[c].between(0.5, 2.0).all() and 0.7 <= d[c].mean() <= 1.5, d
+    assert (d["std_scale"] >= 0.5).all() and (d["std_scale_max"] <= 5.0).all(), d
     # test points beyond the 64 training points' box are flagged (a few, near the edges of the space)
-    assert 0 < p["extrapolation"].mean() < 0.2
+    assert ((d["extrapolated"] > 0) & (d["extrapolated"] < 0.2)).all(), d
 
 
 def test_noise_free_data_is_reproduced_closely():
