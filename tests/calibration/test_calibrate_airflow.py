@@ -37,6 +37,7 @@ def synthetic():
     return bench, match, calls
 
 
+@pytest.mark.slow
 def test_recovers_known_runner_lengths(synthetic):
     _, match, _ = synthetic
     for k, v in TRUTH.items():
@@ -48,6 +49,7 @@ def test_recovers_known_runner_lengths(synthetic):
     assert match.misses().empty
 
 
+@pytest.mark.slow
 def test_outputs_are_complete_and_consistent(synthetic):
     bench, match, calls = synthetic
     t = match.table

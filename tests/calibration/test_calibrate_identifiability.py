@@ -17,6 +17,8 @@ from engine_model import SolverSettings, default_spec
 from engine_model.sim import simulate
 from engine_model import calibration as cal
 
+pytestmark = pytest.mark.slow
+
 ETA = 0.93
 
 

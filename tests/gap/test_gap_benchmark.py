@@ -19,6 +19,8 @@ import pytest
 from engine_model.gap.benchmark import BENCHMARK_COLUMNS, OOL_EFFECT, run_benchmark
 from engine_model.gap.report import write_benchmark_report
 
+pytestmark = pytest.mark.slow
+
 WITHHELD = ["transmission_efficiency", "restrictor", "intake_air_temperature"]
 LIBRARY = WITHHELD + ["heat_transfer", "friction"]
 SEEDS = 5

@@ -79,6 +79,7 @@ _WHITE = ErrorModel("white", {}, 0.0, None)
 _BURN = ErrorModel("burn", {}, 1.0, None)
 
 
+@pytest.mark.slow
 def test_noise_quantile_covers_burn_scatter_only_with_its_covariance():
     """Data = base + 1 deg per-point burn scatter (0.75 % torque, 6 K per point, more than the noise) + noise.
     The pure-noise Monte Carlo of the burn-scatter model draws that covariance, so the base's held-out chi2

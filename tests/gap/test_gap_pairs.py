@@ -28,6 +28,7 @@ def _pairs(lin, delta):
     return out
 
 
+@pytest.mark.slow
 def test_two_planted_effects_are_named_as_the_pair(lin):
     delta = _delta(lin, "heat_transfer") + _delta(lin, "friction", base_shift=False)
     res = _pairs(lin, delta)
@@ -41,6 +42,7 @@ def test_two_planted_effects_are_named_as_the_pair(lin):
         assert "heat_transfer" in top["params"] and "friction" in top["params"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", ["heat_transfer", "restrictor"])
 def test_one_planted_effect_makes_no_pair_claim(lin, effect):
     res = _pairs(lin, _delta(lin, effect))
@@ -50,6 +52,7 @@ def test_one_planted_effect_makes_no_pair_claim(lin, effect):
     assert all(effect in (p.table["effect_a"].iloc[0], p.table["effect_b"].iloc[0]) for _, p in res)
 
 
+@pytest.mark.slow
 def test_pure_noise_makes_no_pair_claim(lin):
     res = _pairs(lin, np.zeros(len(lin.columns)))
     claims = [p.named for _, p in res if p.named]

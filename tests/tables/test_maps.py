@@ -433,6 +433,7 @@ def test_fitted_map_model_file_drives_the_search(tmp_path):
         build_maps(other, model, grid=GRID, evaluate=synthetic_engine)
 
 
+@pytest.mark.slow
 def test_truth_burn_law_mbt_within_2_deg_and_torque_within_1_pct():
     """With the virtual bench's hidden burn law as the model: the issue's acceptance numbers on a 2 x 2 grid.
 
