@@ -28,8 +28,10 @@ with z = c_b / c_c the sound-speed ratio across the wave and w the velocity *out
 the Riemann invariant w + 2c/(gamma - 1) carried unchanged from the cell to the end (the cell's
 gamma, c and entropy).  The end cell's state is the start-of-step cell average (first order at the
 end).  For each law the end state solves one scalar equation in z by Newton's method, safeguarded
-by bisection inside a bracket that is known to hold the single root; the previous step's end
-velocity (``wb[ip, side]``) is the warm start, so one or two iterations are typical.
+by bisection inside a bracket that is known to hold the single root.  The residuals are the
+squared continuity equations, smooth through zero flow (where the orifice law has a square-root
+singularity) and through the choke point.  The warm start is the end velocity of the last two
+calls, extrapolated linearly in time (``wb[ip, side, :]``).
 
 * Outflow from the pipe through an orifice (throat area Cd A = ``cda_out``): the gas expands
   isentropically from the cell through the end state to the throat, where its pressure is the
@@ -66,7 +68,7 @@ from .pipes import (G_AL, G_AR, NQ, PM_C, PM_CP, PM_G, PM_H, PM_P, PM_RHO, PM_T,
 from .volumes import PR_G, PR_H, PR_P, PR_R, PR_T, PR_YA, PR_YM, PR_YP
 
 Z_MIN = 1e-3        # [-] floor of the sound-speed ratio across the wave (vacuum guard)
-Z_TOL = 1e-10       # [-] Newton stops when the step in z is below this
+Z_TOL = 1e-9        # [-] Newton stops when its step in z is below this (error left ~1e-15)
 MAX_IT = 50         # Newton/bisection iterations at most (bisection alone needs ~35 for Z_TOL)
 THETA_MIN = 0.02    # [-] smallest T_b / T_0 accepted for the inflow jet (beyond: outside the bracket)
 
@@ -117,52 +119,64 @@ def bc_wall(prim, pipes, geom, ip, side, bflux):
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
 def _z_out(wc, k, g, a, zv, zw, z):
-    """Outflow: root in [zv, zw] of F(z) = a z^k W - z_t^k W_t (continuity end -> throat, velocities / c_c).
+    """Outflow: root in [zv, zw] of H(z) = (a z^k W)^2 - (z_t^k W_t)^2, the squared continuity end -> throat.
 
-    W = wc - k (z - 1) is the end velocity, z_t, W_t the throat's: isentropic from the end at the
-    volume pressure (z_t = zv), or sonic.  F(zv) >= 0 >= F(zw) for a = A / CdA >= 1.
+    Velocities are in units of the cell's sound speed: W = wc - k (z - 1) at the end, z_t, W_t at the
+    throat, isentropic from the end at the volume pressure (z_t = zv, W_t^2 = W^2 + k (z^2 - zv^2)) or
+    sonic (W_t = z_t, z_t^2 = 2/(g+1) (z^2 + W^2/k)).  Squared, the residual is smooth through zero
+    flow and through the choke point; it decreases in z, H(zv) >= 0 >= H(zw) for a = A/CdA >= 1.
+    Returns (z, z^k).
     """
     lo = zv
     hi = zw
     if not (z > lo and z < hi):
         z = hi
-    zvk = math.exp(k * math.log(zv))
     zv2 = zv * zv
+    zvk2 = math.exp(2.0 * k * math.log(zv))
     cs = 2.0 / (g + 1.0)
+    zk = 1.0
     for _ in range(MAX_IT):
         w = wc - k * (z - 1.0)
         zk = math.exp(k * math.log(z))
+        m = a * zk * w
         zt2 = cs * (z * z + w * w / k)
-        if zt2 > zv2:                              # sonic throat: W_t = z_t
-            zt = math.sqrt(zt2)
-            ztk1 = math.exp((k - 1.0) * math.log(zt))
-            f = a * zk * w - ztk1 * zt2
-            b = ztk1
+        if zt2 > zv2:                              # sonic throat
+            ztk1 = math.exp((k + 1.0) * math.log(zt2))
+            h = m * m - ztk1
+            dh = -2.0 * (z - w) * (a * k * zk * m / z + (k + 1.0) * cs * ztk1 / zt2)
         else:
-            wt = math.sqrt(w * w + k * (z * z - zv2))
-            f = a * zk * w - zvk * wt
-            b = zvk / wt
-        if f > 0.0:
+            h = m * m - zvk2 * (w * w + k * (z * z - zv2))
+            dh = -2.0 * k * (z - w) * (a * zk * m / z + zvk2)
+        if h > 0.0:
             lo = z
         else:
             hi = z
-        df = k * (w - z) * (a * zk / z + b)
-        zn = z - f / df if df < 0.0 else lo - 1.0
+        if dh < 0.0:
+            step = h / dh
+            if abs(step) <= Z_TOL:
+                zn = z - step
+                return zn, zk * (1.0 - k * step / z)
+            zn = z - step
+        else:
+            zn = lo - 1.0
         if not (zn > lo and zn < hi):
             zn = 0.5 * (lo + hi)
-        if abs(zn - z) <= Z_TOL:
-            return zn
+            if hi - lo <= Z_TOL:
+                return zn, zk * (1.0 + k * (zn - z) / z)
         z = zn
-    return z
+    return z, math.exp(k * math.log(z))
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
 def _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z):
-    """Inflow: root in [zw, zv] of G(z) = pr (-W) sig / theta - alpha psi(pr) (continuity throat -> end).
+    """Inflow: root in [zw, zv] of H(z) = (pr (-W) sig / theta)^2 - alpha^2 psi(pr)^2, squared continuity
+    throat -> end.
 
     pr = p_b / p_v = exp((k + 2) ln z + lpc), W = wc - k (z - 1) < 0 the end velocity / c_c,
-    theta = T_b / T_v = 1 - bet W^2, sig = c_c / sqrt(R_v T_v), alpha = CdA / A, psi the orifice
-    function of the volume gas (choked below the critical ratio).  G(zw) < 0 < G(zv).
+    theta = T_b / T_v = 1 - bet W^2, sig = c_c / sqrt(R_v T_v), alpha = CdA / A and psi^2 =
+    2g/(g-1) (pr^(2/g) - pr^((g+1)/g)) of the volume gas, constant below the critical ratio (smooth
+    there: its slope vanishes at the critical ratio).  H increases in z, H(zw) < 0 < H(zv).
+    Returns (z, pr).
     """
     kk = k + 2.0
     lo = zw
@@ -172,47 +186,51 @@ def _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z):
     gm1 = gv - 1.0
     c2g = 2.0 * gv / gm1
     prc = -1.0                                     # critical ratio, computed when first needed
-    psic = 0.0
+    psic2 = 0.0
     for _ in range(MAX_IT):
         w = wc - k * (z - 1.0)
-        lz = math.log(z)
-        lpr = kk * lz + lpc
+        lpr = kk * math.log(z) + lpc
         pr = math.exp(lpr)
         th = 1.0 - bet * w * w
-        if th < THETA_MIN:
+        if th < THETA_MIN:                         # beyond the fastest possible jet: above the root
             hi = z
-            zn = 0.5 * (lo + hi)
-            if abs(zn - z) <= Z_TOL:
-                return zn
-            z = zn
+            z = 0.5 * (lo + hi)
+            if hi - lo <= Z_TOL:
+                return z, math.exp(kk * math.log(z) + lpc)
             continue
-        dpr = pr * kk / z
         if pr < 0.6 and prc < 0.0:
             cc = math.exp(math.log(2.0 / (gv + 1.0)) / gm1)
             prc = 2.0 * cc / (gv + 1.0)
-            psic = cc * math.sqrt(2.0 * gv / (gv + 1.0))
+            psic2 = cc * cc * 2.0 * gv / (gv + 1.0)
         if pr <= prc:
-            psi = psic
-            dpsi = 0.0
+            psi2 = psic2
+            dpsi2 = 0.0
         else:
             t = math.exp(lpr / gv)
-            s2 = c2g * (t * t - pr * t)
-            psi = math.sqrt(s2) if s2 > 0.0 else 0.0
-            dpsi = (2.0 * t * t / pr - (gv + 1.0) * t) / (gm1 * psi) if psi > 1e-12 else -1e300
-        f = sig * pr * (-w) / th - alpha * psi
-        if f > 0.0:
+            psi2 = c2g * t * (t - pr)
+            dpsi2 = c2g * t * (2.0 * t / (gv * pr) - (gv + 1.0) / gv)
+        phi = sig * pr * (-w) / th
+        h = phi * phi - alpha * alpha * psi2
+        if h > 0.0:
             hi = z
         else:
             lo = z
-        dth = 2.0 * bet * w * k
-        df = sig * (dpr * (-w) / th + pr * k / th - pr * (-w) * dth / (th * th)) - alpha * dpsi * dpr
-        zn = z - f / df if df > 0.0 else lo - 1.0
+        dpr = pr * kk / z
+        dphi = sig * (dpr * (-w) + pr * k - pr * (-w) * 2.0 * bet * w * k / th) / th
+        dh = 2.0 * phi * dphi - alpha * alpha * dpsi2 * dpr
+        if dh > 0.0:
+            step = h / dh
+            if abs(step) <= Z_TOL:
+                return z - step, pr * (1.0 - kk * step / z)
+            zn = z - step
+        else:
+            zn = lo - 1.0
         if not (zn > lo and zn < hi):
             zn = 0.5 * (lo + hi)
-        if abs(zn - z) <= Z_TOL:
-            return zn
+            if hi - lo <= Z_TOL:
+                return zn, math.exp(kk * math.log(zn) + lpc)
         z = zn
-    return z
+    return z, math.exp(kk * math.log(z) + lpc)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -230,8 +248,10 @@ def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflu
         to the end face area.
     props : (nvol, >= 8) float64; kv : int
         Volume properties in the layout of ``volumes._eval_props`` (p, T, R, gamma, h, y).
-    wb : (npipe, 2) float64
-        End velocity out of the pipe [m/s]: warm start on entry, this step's value on return.
+    wb : (npipe, 2, 2) float64
+        End velocity out of the pipe [m/s] of the last two calls (this one's on return, then the
+        previous one): the warm start of the solve (linear extrapolation in time).  Zeros are a
+        valid start; the values only affect how many iterations the solve takes.
     bflux : (npipe, 2, NQ) float64
         Receives the end flux (+x direction; see the module docstring).
 
@@ -241,7 +261,6 @@ def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflu
         Static pressure at the pipe end [Pa].
     """
     i, area, s = _end(pipes, geom, ip, side)
-    rho = prim[PM_RHO, i]
     p = prim[PM_P, i]
     c = prim[PM_C, i]
     g = prim[PM_G, i]
@@ -249,54 +268,56 @@ def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflu
     kk = k + 2.0
     wc = s * prim[PM_U, i] / c                    # end cell velocity out of the pipe / c
     zw = max(1.0 + wc / k, Z_MIN)                 # the wave that brings the gas to rest
-    pv = props[kv, PR_P]
-    lpc = math.log(p / pv)
-    zv = math.exp(-lpc / kk)                      # the wave that brings the gas to the volume pressure
-    z0 = 1.0 + (wc - wb[ip, side] / c) / k
-    if zw > zv and cda_out > 0.0:
-        # ---------------------------------------------------------------- pipe -> volume
-        a = area / cda_out if cda_out < area else 1.0
-        if a == 1.0:
-            z = zv
-            if wc - k * (z - 1.0) > z:            # faster than sound at the volume pressure: sonic exit
-                z = (wc + k) / (1.0 + k)
-        else:
-            z = _z_out(wc, k, g, a, zv, zw, z0)
-        w = wc - k * (z - 1.0)
-        zk = math.exp(k * math.log(z))
-        z2 = z * z
-        p_b = p * zk * z2
-        mdot = rho * zk * w * c * area            # out of the pipe [kg/s]
-        wv = w * c
-        t = prim[PM_T, i]
-        h0 = prim[PM_H, i] + prim[PM_CP, i] * t * (z2 - 1.0) + 0.5 * wv * wv
-        _put(bflux, ip, side, s * mdot, prim[PM_YA, i], prim[PM_YM, i], prim[PM_YP, i],
-             mdot * wv + p_b * area, h0)
-        wb[ip, side] = wv
-        return p_b
-    if zw < zv and cda_in > 0.0:
-        # ---------------------------------------------------------------- volume -> pipe
-        tv = props[kv, PR_T]
-        rv = props[kv, PR_R]
-        gv = props[kv, PR_G]
-        cpv = gv * rv / (gv - 1.0)
-        alpha = cda_in / area if cda_in < area else 1.0
-        sig = c / math.sqrt(rv * tv)
-        bet = c * c / (2.0 * cpv * tv)
-        z = _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z0)
-        w = wc - k * (z - 1.0)
-        wv = w * c                                # < 0: into the pipe
-        p_b = pv * math.exp(kk * math.log(z) + lpc)
-        t_b = tv * (1.0 - bet * w * w)
-        mdot = p_b / (rv * t_b) * (-wv) * area     # into the pipe [kg/s]
-        _put(bflux, ip, side, -s * mdot, props[kv, PR_YA], props[kv, PR_YM], props[kv, PR_YP],
-             mdot * (-wv) + p_b * area, props[kv, PR_H])
-        wb[ip, side] = wv
-        return p_b
+    w1 = wb[ip, side, 0]
+    w0 = wb[ip, side, 1]
+    wb[ip, side, 1] = w1
+    if cda_out > 0.0 or cda_in > 0.0:
+        pv = props[kv, PR_P]
+        lpc = math.log(p / pv)
+        zv = math.exp(-lpc / kk)                  # the wave that brings the gas to the volume pressure
+        z0 = 1.0 + (wc - (2.0 * w1 - w0) / c) / k
+        if zw > zv and cda_out > 0.0:
+            # ------------------------------------------------------------ pipe -> volume
+            if cda_out < area:
+                z, zk = _z_out(wc, k, g, area / cda_out, zv, zw, z0)
+            else:
+                z = zv
+                if wc - k * (z - 1.0) > z:        # faster than sound at the volume pressure: sonic exit
+                    z = (wc + k) / (1.0 + k)
+                zk = math.exp(k * math.log(z))
+            w = wc - k * (z - 1.0)
+            z2 = z * z
+            p_b = p * zk * z2
+            wv = w * c
+            mdot = prim[PM_RHO, i] * zk * wv * area   # out of the pipe [kg/s]
+            h0 = prim[PM_H, i] + prim[PM_CP, i] * prim[PM_T, i] * (z2 - 1.0) + 0.5 * wv * wv
+            _put(bflux, ip, side, s * mdot, prim[PM_YA, i], prim[PM_YM, i], prim[PM_YP, i],
+                 mdot * wv + p_b * area, h0)
+            wb[ip, side, 0] = wv
+            return p_b
+        if zw < zv and cda_in > 0.0:
+            # ------------------------------------------------------------ volume -> pipe
+            tv = props[kv, PR_T]
+            rv = props[kv, PR_R]
+            gv = props[kv, PR_G]
+            cpv = gv * rv / (gv - 1.0)
+            alpha = cda_in / area if cda_in < area else 1.0
+            sig = c / math.sqrt(rv * tv)
+            bet = c * c / (2.0 * cpv * tv)
+            z, pr = _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z0)
+            w = wc - k * (z - 1.0)
+            wv = w * c                            # < 0: into the pipe
+            p_b = pv * pr
+            t_b = tv * (1.0 - bet * w * w)
+            mdot = p_b / (rv * t_b) * (-wv) * area    # into the pipe [kg/s]
+            _put(bflux, ip, side, -s * mdot, props[kv, PR_YA], props[kv, PR_YM], props[kv, PR_YP],
+                 mdot * (-wv) + p_b * area, props[kv, PR_H])
+            wb[ip, side, 0] = wv
+            return p_b
     # closed, or no pressure difference
     p_w = p * math.exp(kk * math.log(zw))
     _wall_flux(bflux, ip, side, p_w, area)
-    wb[ip, side] = 0.0
+    wb[ip, side, 0] = 0.0
     return p_w
 
 
