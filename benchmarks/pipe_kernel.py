@@ -30,6 +30,10 @@ from engine_model.cycle import volumes as VOL
 from engine_model.thermo import enthalpy_coeffs, gas_set
 
 RPM = 9000.0
+# The njit drivers here are compiled uncached on purpose: numba links the machine code of the
+# kernels they call into their own cache entry without tracking the kernels' sources, so a cached
+# driver could keep running an old kernel after pipes.py changes (the cache guard in
+# engine_model/cycle/__init__.py covers only that package's own cache).
 NSTEP = 1440
 DT = 0.5 / (RPM * 6.0)
 FRIC_EVERY = 8      # steps between friction-factor refreshes (4 deg)
@@ -102,7 +106,7 @@ def valve_tables(net):
     return cda, kv
 
 
-@njit(cache=True)
+@njit(cache=False)
 def run_cycles(ncyc, q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv, cda, hc, rsp, dt):
     """Full steps: properties, end fluxes, advance; friction factors every FRIC_EVERY steps.
     Returns the largest Courant number seen."""
@@ -124,7 +128,7 @@ def run_cycles(ncyc, q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv,
     return cmax
 
 
-@njit(cache=True)
+@njit(cache=False)
 def record_cycle(q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv, cda, hc, rsp, dt, qrec, trec, prec,
                  brec, wrec):
     """One cycle as run_cycles, recording the inputs of every part at every step."""
@@ -145,7 +149,7 @@ def record_cycle(q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv, cda
         P.advance(q, prim, geom, pipes, bflux, fric, dt, work)
 
 
-@njit(cache=True)
+@njit(cache=False)
 def replay(part, nstep, qrec, trec, prec, brec, wrec, crec, q, tc, prim, fric, work, geom, pipes, bflux, wb, props,
            kv, hc, rsp, dt):
     """Run one part (1 properties, 2 end fluxes, 3 advance, 4 friction factors; 0 none) ``nstep``
