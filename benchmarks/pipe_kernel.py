@@ -8,7 +8,8 @@ cylinder -> exhaust valve -> primary -> collector volume -> collector pipe -> si
 tailpipe -> ambient.  The volumes are held fixed (cylinders at an intake-stroke and a blowdown
 state); the valve effective areas follow sin^2 lift curves with the R6 firing order phasing, so
 every valve end opens, reverses flow and closes once per cycle.  One cycle = 1440 steps of
-0.5 deg at 9000 rpm (dt = 9.26e-6 s); the Courant number stays below ~0.5.
+0.5 deg at 9000 rpm (dt = 9.26e-6 s); the Courant number stays below ~0.5 (``--deg 1`` times
+pipe steps of 1 deg instead, Courant ~0.8: what a driver could do at this speed).
 
 Printed: CPU time per cycle (best of ``--repeat``, thread CPU time), its split into the property pass (u -> T Newton),
 the end fluxes and the MUSCL-Hancock/HLLC advance, the cost per cell-step, and the accuracy of the
@@ -34,8 +35,9 @@ RPM = 9000.0
 # kernels they call into their own cache entry without tracking the kernels' sources, so a cached
 # driver could keep running an old kernel after pipes.py changes (the cache guard in
 # engine_model/cycle/__init__.py covers only that package's own cache).
-NSTEP = 1440
-DT = 0.5 / (RPM * 6.0)
+DEG = 0.5           # crank angle per pipe step [deg] (--deg changes it)
+NSTEP = int(round(720.0 / DEG))
+DT = DEG / (RPM * 6.0)
 FRIC_EVERY = 8      # steps between friction-factor refreshes (4 deg)
 
 # volumes: 0 plenum, 1-4 cylinders (intake side state), 5-8 cylinders (exhaust side state),
@@ -77,11 +79,12 @@ def volume_props(hc, rsp, gs):
     return props
 
 
-def valve_tables(net):
-    """Effective areas per step [m2]: ends table (npipe, 2, NSTEP) and the volume of each end (npipe, 2)."""
-    cda = np.zeros((net.npipe, 2, NSTEP))
+def valve_tables(net, nstep=None):
+    """Effective areas per step [m2]: ends table (npipe, 2, nstep) and the volume of each end (npipe, 2)."""
+    nstep = NSTEP if nstep is None else nstep
+    cda = np.zeros((net.npipe, 2, nstep))
     kv = np.zeros((net.npipe, 2), dtype=np.int64)
-    ang = np.arange(NSTEP) * 0.5
+    ang = np.arange(nstep) * (720.0 / nstep)
     fire = (0.0, 180.0, 540.0, 360.0)          # R6 firing order 1-2-4-3: TDC of each cylinder [deg]
 
     def lift(open_deg, dur):
@@ -192,7 +195,12 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cycles", type=int, default=3, help="cycles per timed run")
     ap.add_argument("--repeat", type=int, default=5, help="timed runs (best is reported)")
+    ap.add_argument("--deg", type=float, default=0.5, help="crank angle per pipe step [deg] (default 0.5)")
     args = ap.parse_args(argv)
+    global DEG, NSTEP, DT
+    DEG = args.deg
+    NSTEP = int(round(720.0 / DEG))
+    DT = DEG / (RPM * 6.0)
 
     gs = gas_set(0.9)
     hc, rsp = enthalpy_coeffs(gs.coeffs), np.array(gs.r_specific)
@@ -232,7 +240,7 @@ def main(argv=None) -> int:
     t_fric /= FRIC_EVERY
     cellsteps = net.ncell * NSTEP
     print(f"pipes {net.npipe}, cells {net.ncell}, ends {2 * net.npipe}; {NSTEP} steps of {DT:.3e} s "
-          f"(0.5 deg at {RPM:.0f} rpm); max Courant number {cmax:.2f}")
+          f"({DEG:g} deg at {RPM:.0f} rpm); max Courant number {cmax:.2f}")
     print(f"time per cycle:       {1e3 * t_cyc:7.3f} ms  ({1e9 * t_cyc / cellsteps:5.1f} ns per cell-step)")
     print("split (each part alone on snapshots of the cycle; approximate):")
     print(f"  property pass:      {1e3 * t_props:7.3f} ms  ({1e9 * t_props / cellsteps:5.1f} ns per cell-step)")
