@@ -731,6 +731,7 @@ def test_apply_end_flux_moves_what_crosses_each_end_into_or_out_of_the_volume():
     props = np.vstack([_props_row(2e5, 350.0, rsp[0], 1.4, -3e4, (1.0, 0.0, 0.0)),
                        _props_row(1e5, 400.0, rsp[1], 1.38, -2e5, (0.0, 1.0, 0.0))])
     assert P.pipe_props(q, tc, net.geom, net.ncell, hc, rsp, prim) == 0
+    P.friction_factors(prim, net.geom, net.ncell, fric)
     B.bc_orifice(prim, net.pipes, net.geom, 0, 0, 2e-4, 2e-4, props, 0, wb, bflux)   # inflow from volume 0
     B.bc_orifice(prim, net.pipes, net.geom, 0, 1, 2e-4, 2e-4, props, 1, wb, bflux)   # outflow to volume 1
     assert bflux[0, 0, P.Q_A] > 0.0 and bflux[0, 1, P.Q_P] > 0.0
