@@ -3,6 +3,7 @@
 import json
 
 import pandas as pd
+import pytest
 
 from flows.cli import main
 
@@ -55,6 +56,27 @@ def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
     page = (out / "index.html").read_text()
     assert "(missing)" not in page and "maps/spark_advance.csv" in page
     assert "index:" in capsys.readouterr().out
+    # the calibrated engine is in the run folder, with the matched values
+    from engine_model.calibrated import CalibratedEngine
+    eng = CalibratedEngine.load(out / "engine.toml")
+    assert eng.overrides == pytest.approx(man["calibration"]["airflow"]["parameters"])
+    assert eng.spec_hash() == man["calibrated_spec_hash"]
+    # a later stage alone, on the finished run: it uses the run's engine and leaves the other stages' outputs
+    spark_before = (out / "maps" / "spark_advance.csv").read_bytes()
+    assert main(["run", "--quick", "--stages", "gap", "--out", str(out)]) == 0
+    man2 = json.loads((out / "manifest.json").read_text())
+    assert list(man2["timings_s"]) == ["gap"] and man2["stages"] == ["gap"]
+    assert man2["calibrated_spec_hash"] == man["calibrated_spec_hash"]
+    assert "maps" in man2 and (out / "maps" / "spark_advance.csv").read_bytes() == spark_before
+    assert "maps/spark_advance.csv" in (out / "index.html").read_text()
+
+
+def test_mbc_run_refuses_a_stage_whose_inputs_are_missing(tmp_path, capsys):
+    out = tmp_path / "empty"
+    assert main(["run", "--quick", "--stages", "maps", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "stage 'maps' needs the 'calibration' stage's output" in err and "engine.toml" in err
+    assert not out.exists() and not (tmp_path / "empty.partial").exists()
 
 
 def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
