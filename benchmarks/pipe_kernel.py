@@ -58,7 +58,7 @@ def layout():
 
 
 def volume_props(hc, rsp, gs):
-    """Fixed property rows of the 12 volumes (layout of volumes._eval_props)."""
+    """Fixed property rows of the 12 volumes (layout of volumes.eval_props)."""
     states = [(0.95e5, 305.0, (1.0, 0.0, 0.0))]                       # plenum: air
     states += [(0.90e5, 340.0, (0.0, 0.92, 0.08))] * 4                  # cylinders, intake stroke
     states += [(3.0e5, 1150.0, (0.0, 0.0, 1.0))] * 4                    # cylinders, blowdown

@@ -164,11 +164,11 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
         "measurement", (("brake_torque_nm", -1),)),
     Effect(
         "runner_inertia",
-        "Intake gas inertia / wave tuning: the lumped runner model misjudges the inertia of the gas "
-        "column (a 1D pipe's wave action), so the ram/tuning peak sits at another speed or height.",
+        "Intake gas inertia / wave tuning: the model misjudges the acoustic length of the intake runner "
+        "(end corrections, taper, the port's share), so the ram/tuning peak sits at another speed or height.",
         (_p("factor", "-", 1.0, 0.3, 2.0, 0.7,
-            "multiplier on the runner gas inertance L/A (spec intake.runner_inertance_factor); "
-            "0.3-2 brackets end corrections and the effective length of a tapered 1D runner"),),
+            "multiplier on the runner's acoustic length (1D pipes) or gas inertance L/A (lumped runners), "
+            "spec intake.runner_inertance_factor; 0.3-2 brackets end corrections and tapered runners"),),
         f"{_HEYWOOD}, sec. 7.6 (ram and tuning effects); Winterbone & Pearson, Design Techniques for "
         "Engine Manifolds, 1999, ch. 2 (effective length of a pipe).",
         "model", (("air_mass_flow_kg_h", 0), ("brake_torque_nm", 0))),

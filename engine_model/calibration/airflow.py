@@ -106,7 +106,7 @@ class Parameter:
 DEFAULT_PARAMETERS = (
     Parameter("exhaust.runner_length_m", 0.20, 0.70, 0.004, "m", "exhaust primary length: scavenging tuning"),
     Parameter("intake.runner_length_m", 0.10, 0.35, 0.004, "m", "intake runner length: ram tuning"),
-    Parameter("intake.restrictor_recovery", 0.50, 0.95, 0.02, "-",
+    Parameter("intake.restrictor_recovery", 0.30, 0.95, 0.02, "-",
               "diffuser pressure recovery behind the restrictor: level, rising with speed"),
 )
 AIRFLOW_NOISE_PCT = 1.0     # [A] assumed 1-sigma airflow measurement noise, % of reading

@@ -43,7 +43,7 @@ CANDIDATES = (
               "plenum-to-valve length incl. head port (ram tuning); FS manifolds 0.1-0.35 m [A]"),
     Parameter("intake.restrictor_cd", 0.85, 0.99, 0.006, "-",
               "restrictor throat Cd; machined venturis 0.95-0.995 (ISO 5167-4), 0.85 allows a poor inlet"),
-    Parameter("intake.restrictor_recovery", 0.50, 0.95, 0.02, "-",
+    Parameter("intake.restrictor_recovery", 0.30, 0.95, 0.02, "-",
               "diffuser pressure recovery; conical diffusers 0.5 (short/separated) to 0.9 (White, sec. 6.11)"),
     Parameter("intake.runner_diameter_m", 0.030, 0.044, 0.0008, "m",
               "runner/port diameter (inertance L/A, damping); FS runners and R6 ports 30-44 mm [A]"),

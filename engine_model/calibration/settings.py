@@ -34,7 +34,7 @@ class CalibrationSettings:
     eta_trans: float = 0.95
     step_deg: float = 0.5
     airflow_step_deg: float = 1.0
-    airflow_grid: tuple = (6, 6, 1)
+    airflow_grid: tuple = (6, 6, 3)
     airflow_starts: int = 2
     airflow_max_nfev: int = 12
     n_bdur: int = 11

@@ -14,7 +14,7 @@ donor's mass fractions.  The kinetic energy that enters a volume becomes interna
 (the volume has no momentum), which is the dump loss.
 
 The volume side is described by a row ``props[kv]`` laid out as in :mod:`volumes`
-(``PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP``): ``_eval_props`` output can be passed as is.
+(``PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP``): ``eval_props`` output can be passed as is.
 
 Method (Benson 1982; the same structure as the boundary conditions of 1D engine codes such as
 OpenWAM): the end cell's state and the characteristic that reaches the end from inside the pipe
@@ -63,7 +63,7 @@ Heywood, J.B., Internal Combustion Engine Fundamentals, 1988, app. C (orifice fl
 import math
 
 from .layout import V_MA, V_MM, V_MP, V_U
-from .pipes import _kernel, _kernel_inline  # the kernels' decorators (see pipes.py)
+from .pipes import kernel, kernel_inline  # the kernels' decorators (see pipes.py)
 from .pipes import (G_AL, G_AR, NQ, PM_C, PM_CP, PM_G, PM_H, PM_P, PM_RHO, PM_T, PM_U, PM_YA, PM_YM,
                     PM_YP, Q_A, Q_E, Q_M, Q_MOM, Q_P)
 from .volumes import PR_G, PR_H, PR_P, PR_R, PR_T, PR_YA, PR_YM, PR_YP
@@ -74,7 +74,7 @@ MAX_IT = 50         # Newton/bisection iterations at most (bisection alone needs
 THETA_MIN = 0.02    # [-] smallest T_b / T_0 accepted for the inflow jet (beyond: outside the bracket)
 
 
-@_kernel_inline
+@kernel_inline
 def _end(pipes, geom, ip, side):
     """(end cell, end face area [m2], s) with s = +1 at the right end and -1 at the left end."""
     i0 = pipes[ip, 0]
@@ -84,7 +84,7 @@ def _end(pipes, geom, ip, side):
     return i, geom[G_AR, i], 1.0
 
 
-@_kernel_inline
+@kernel_inline
 def _put(bflux, ip, side, fx, ya, ym, yp, fmom, h0):
     """Store a flux: ``fx`` mass flow in +x [kg/s], composition, momentum flux [N], specific energy h0 [J/kg]."""
     bflux[ip, side, Q_A] = fx * ya
@@ -94,14 +94,14 @@ def _put(bflux, ip, side, fx, ya, ym, yp, fmom, h0):
     bflux[ip, side, Q_E] = fx * h0
 
 
-@_kernel_inline
+@kernel_inline
 def _wall_flux(bflux, ip, side, p_w, area):
     for j in range(NQ):
         bflux[ip, side, j] = 0.0
     bflux[ip, side, Q_MOM] = p_w * area
 
 
-@_kernel
+@kernel
 def bc_wall(prim, pipes, geom, ip, side, bflux):
     """Closed end: no mass or energy flux, momentum flux = wall pressure * area.  Returns the wall pressure [Pa].
 
@@ -118,7 +118,7 @@ def bc_wall(prim, pipes, geom, ip, side, bflux):
     return p_w
 
 
-@_kernel_inline
+@kernel_inline
 def _z_out(wc, k, g, a, zv, zw, z):
     """Outflow: root in [zv, zw] of H(z) = (a z^k W)^2 - (z_t^k W_t)^2, the squared continuity end -> throat.
 
@@ -168,7 +168,7 @@ def _z_out(wc, k, g, a, zv, zw, z):
     return z, math.exp(k * math.log(z))
 
 
-@_kernel_inline
+@kernel_inline
 def _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z):
     """Inflow: root in [zw, zv] of H(z) = (pr (-W) sig / theta)^2 - alpha^2 psi(pr)^2, squared continuity
     throat -> end.
@@ -234,7 +234,7 @@ def _z_in(wc, k, lpc, gv, alpha, sig, bet, zw, zv, z):
     return z, math.exp(kk * math.log(z) + lpc)
 
 
-@_kernel
+@kernel
 def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflux):
     """Pipe end joined to 0D volume ``kv`` through an orifice (valve, throttle), either direction.
 
@@ -248,7 +248,7 @@ def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflu
         Effective area Cd*A [m2] for flow pipe -> volume and volume -> pipe (0 = closed); clipped
         to the end face area.
     props : (nvol, >= 8) float64; kv : int
-        Volume properties in the layout of ``volumes._eval_props`` (p, T, R, gamma, h, y).
+        Volume properties in the layout of ``volumes.eval_props`` (p, T, R, gamma, h, y).
     wb : (npipe, 2, 2) float64
         End velocity out of the pipe [m/s] of the last two calls (this one's on return, then the
         previous one): the warm start of the solve (linear extrapolation in time).  Zeros are a
@@ -322,7 +322,7 @@ def bc_orifice(prim, pipes, geom, ip, side, cda_out, cda_in, props, kv, wb, bflu
     return p_w
 
 
-@_kernel
+@kernel
 def bc_open(prim, pipes, geom, ip, side, k_in, props, kv, wb, bflux):
     """Pipe end opening into 0D volume ``kv`` without an orifice (plenum -> runner, primary -> collector).
 
@@ -339,7 +339,7 @@ def bc_open(prim, pipes, geom, ip, side, k_in, props, kv, wb, bflux):
     return bc_orifice(prim, pipes, geom, ip, side, area, area / math.sqrt(1.0 + k_in), props, kv, wb, bflux)
 
 
-@_kernel
+@kernel
 def bc_pressure(prim, pipes, geom, ip, side, props, kv, bflux):
     """Constant-pressure open end (for tests): static pressure at the end = ``props[kv, PR_P]``.
 
@@ -379,7 +379,7 @@ def bc_pressure(prim, pipes, geom, ip, side, props, kv, bflux):
     return pa
 
 
-@_kernel
+@kernel
 def apply_end_flux(bflux, ip, side, dt, vol, kv):
     """Apply the end flux of pipe ``ip`` to the 0D volume on that end: ``vol[kv, V_MA..V_U] += -/+ dt * flux``.
 

@@ -214,8 +214,8 @@ NEWTON_ONE_STEP = 5.0    # [K] a larger first Newton correction of T is iterated
 # dropping it halved the time of the Riemann solver measured alone (25 -> 12.5 ns per face), a
 # few % of a whole step.  A state that would have raised becomes non-finite, which
 # ``pipe_props`` reports as a failed cell.
-_kernel = njit(cache=True, fastmath=FASTMATH, _nrt=False, error_model="numpy")
-_kernel_inline = njit(cache=True, fastmath=FASTMATH, _nrt=False, error_model="numpy", inline="always")
+kernel = njit(cache=True, fastmath=FASTMATH, _nrt=False, error_model="numpy")
+kernel_inline = njit(cache=True, fastmath=FASTMATH, _nrt=False, error_model="numpy", inline="always")
 
 PRANDTL = 0.7            # [-] Prandtl number of air and burned gas, 300-1500 K (design value)
 _PR23 = PRANDTL ** (2.0 / 3.0)
@@ -363,7 +363,7 @@ def build_pipes(specs) -> PipeNet:
 
 
 # ================================================================== state set-up and inventory
-@_kernel
+@kernel
 def fill_cells(q, tcell, geom, i_start, i_end, p, t, u, ya, ym, yp, hcoeffs, rsp):
     """Set cells [i_start, i_end) to pressure p [Pa], temperature t [K], velocity u [m/s], mass fractions."""
     r = ya * rsp[0] + ym * rsp[1] + yp * rsp[2]
@@ -385,7 +385,7 @@ def fill_cells(q, tcell, geom, i_start, i_end, p, t, u, ya, ym, yp, hcoeffs, rsp
         tcell[i] = t
 
 
-@_kernel
+@kernel
 def inventory(q, i_start, i_end, out):
     """Sums over cells [i_start, i_end): out = (air, mixture, products [kg], momentum [kg m/s], energy [J])."""
     for j in range(NQ):
@@ -396,7 +396,7 @@ def inventory(q, i_start, i_end, out):
 
 
 # ================================================================== primitive state of every cell
-@_kernel_inline
+@kernel_inline
 def _species_eu(hcoeffs, rsp, s, k, t):
     """Internal energy [J/kg] and cv [J/(kg K)] of species s at t [K] from range k of the enthalpy coefficients."""
     c0 = hcoeffs[s, k, 0]
@@ -410,7 +410,7 @@ def _species_eu(hcoeffs, rsp, s, k, t):
     return e, cv
 
 
-@_kernel
+@kernel
 def pipe_props(q, tcell, geom, ncell, hcoeffs, rsp, prim):
     """Fill ``prim[:, :ncell]`` from the cell totals; temperature by Newton from the warm start ``tcell`` (updated).
 
@@ -486,7 +486,7 @@ def pipe_props(q, tcell, geom, ncell, hcoeffs, rsp, prim):
     return 0
 
 
-@_kernel
+@kernel
 def friction_factors(prim, geom, ncell, fric):
     """Darcy friction data of every cell from ``prim`` into ``fric[NF, ncell]`` (input of ``advance``).
 
@@ -511,7 +511,7 @@ def friction_factors(prim, geom, ncell, fric):
         fric[F_LAM, i] = 64.0 * mu / d
 
 
-@_kernel
+@kernel
 def max_stable_dt(prim, geom, ncell, cfl):
     """Largest stable time step [s]: cfl * min over cells of dx / (|u| + c); cfl <= 1 (0.9 recommended)."""
     smax = 0.0
@@ -523,7 +523,7 @@ def max_stable_dt(prim, geom, ncell, cfl):
 
 
 # ================================================================== limiter and HLLC
-@_kernel_inline
+@kernel_inline
 def _mc(a, b):
     """Monotonised-central limited slope of the one-sided differences a, b: minmod(2a, 2b, (a+b)/2), branch-free."""
     c = 0.5 * (a + b)
@@ -531,7 +531,7 @@ def _mc(a, b):
     return math.copysign(m, c) * (1.0 if a * b > 0.0 else 0.0)
 
 
-@_kernel_inline
+@kernel_inline
 def _hllc(rl, ul, pl, el, yal, yml, ypl, cl, gpl, rr, ur, pr, er, yar, ymr, ypr, cr, gpr):
     """HLLC flux per unit area (mass A, M, P [kg/(m2 s)], momentum [Pa], energy [W/m2]); e = total energy per volume.
 
@@ -575,7 +575,7 @@ def _hllc(rl, ul, pl, el, yal, yml, ypl, cl, gpl, rr, ur, pr, er, yar, ymr, ypr,
 
 
 # ================================================================== the step
-@_kernel_inline
+@kernel_inline
 def _clip_fractions(fa, fm, fq):
     """Mass fractions clipped at zero and renormalised to sum to one."""
     fa = max(fa, 0.0)
@@ -585,7 +585,7 @@ def _clip_fractions(fa, fm, fq):
     return fa * inv, fm * inv, fq * inv
 
 
-@_kernel_inline
+@kernel_inline
 def _face_states(prim, geom, i0, n, dt, work):
     """Reconstruct, predict by dt/2 and store the left/right face states of the cells of one pipe."""
     hdt = 0.5 * dt
@@ -683,7 +683,7 @@ def _face_states(prim, geom, i0, n, dt, work):
         work[NWS + W_YP, i] = fq
 
 
-@_kernel
+@kernel
 def advance(q, prim, geom, pipes, bflux, fric, dt, work):
     """Advance all pipes by ``dt`` [s] (MUSCL-Hancock + HLLC, area, friction and heat sources).
 

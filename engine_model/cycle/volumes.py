@@ -14,8 +14,8 @@ PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP, PR_RHO, PR_S, PR_GV, PR_RT = 
 NPR = 12
 
 # accumulator layout: global entries, then 6 per cylinder
-A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN = range(8)
-A_CYL0 = 8
+A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN, A_QPORT = range(9)
+A_CYL0 = 9
 AC_WORK, AC_Q, AC_KNOCK, AC_EXM, AC_EXMT = range(5)
 AC_N = 6
 
@@ -97,8 +97,13 @@ def transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
-    """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
+def iv_transfer(ip, k, m, far, fuel_c, evap, nvol, props, dvol, acc):
+    """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air.
+
+    The fuel enters the cylinder as vapour at the port temperature; the part ``evap`` [J per kg of fuel] of
+    its latent heat that it took from the charge while evaporating is taken from the port's gas (charge
+    cooling), the rest came from the walls.  The fuel's energy input is therefore m_f (h_vap - evap).
+    """
     if m >= 0.0:
         ya = props[ip, PR_YA]
         mf = m * ya * far
@@ -109,9 +114,10 @@ def iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
         dvol[ip, V_U] -= m * props[ip, PR_H]
         dvol[k, V_MM] += m * (ya + props[ip, PR_YM]) + mf
         dvol[k, V_MP] += m * props[ip, PR_YP]
+        dvol[ip, V_U] -= mf * evap
         dvol[k, V_U] += m * props[ip, PR_H] + mf * hf
         acc[A_FUEL] += mf
-        acc[A_HFUEL] += mf * hf
+        acc[A_HFUEL] += mf * (hf - evap)
     else:
         transfer(ip, k, m, nvol, props, dvol)
 

@@ -108,10 +108,13 @@ def validate_points(spec: EngineSpec, points: pd.DataFrame, source: str = "point
     return pts
 
 
-def _volume_name(k: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
+def _volume_name(k: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1, pipes: bool = False) -> str:
     names = ["cylinder", "intake port", "exhaust port"]
     if k < 3 * ncyl:
         return f"{names[k // ncyl]} {k % ncyl + 1}"
+    if pipes:
+        return ["plenum", "throttle body", "exhaust merge", "silencer"][k - 3 * ncyl] if k < 3 * ncyl + 4 \
+            else f"volume {k}"
     if k < 3 * ncyl + 3:
         return ["plenum", "throttle body", "exhaust collector"][k - 3 * ncyl]
     j = k - 3 * ncyl - 3
@@ -123,15 +126,27 @@ def _volume_name(k: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
     return f"volume {k}"
 
 
-def failure_text(code: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1) -> str:
-    """Kernel failure code -> words: 100+k temperature out of range in volume k, 200+k negative mass."""
+def _pipe_name(cell: int, ncyl: int, net) -> str:
+    for ip in range(net.npipe):
+        if net.first_cell(ip) <= cell <= net.last_cell(ip):
+            name = (f"intake runner {ip + 1}" if ip < ncyl else f"exhaust primary {ip - ncyl + 1}" if ip < 2 * ncyl
+                    else ("exhaust collector pipe" if ip == 2 * ncyl else "tailpipe"))
+            return f"{name}, cell {cell - net.first_cell(ip) + 1} of {net.pipes[ip, 1]}"
+    return f"pipe cell {cell}"
+
+
+def failure_text(code: int, ncyl: int, nseg_in: int = 1, nseg_ex: int = 1, net=None) -> str:
+    """Kernel failure code -> words: 100+k temperature out of range in volume k, 200+k negative mass,
+    300+i a pipe cell i with a non-physical state (1D)."""
+    if code >= 300 and net is not None:
+        return f"mass or temperature out of range in {_pipe_name(int(code) - 300, ncyl, net)}"
     kind, k = divmod(int(code), 100)
     what = {1: "temperature left the 150-4400 K range", 2: "negative mass"}.get(kind, f"code {code}")
-    return f"{what} in {_volume_name(k, ncyl, nseg_in, nseg_ex)}"
+    return f"{what} in {_volume_name(k, ncyl, nseg_in, nseg_ex, net is not None)}"
 
 
 def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: thermo.GasSet,
-                burn: dict) -> dict:
+                burn: dict, net=None) -> dict:
     g = spec.geometry
     vd_tot = g.total_displacement_m3
     cycles_per_s = op.speed_rpm / 120.0
@@ -145,7 +160,7 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
     if fail:
         nsi = spec.intake.runner_segments if spec.intake.runner_inertia else 1
         nse = spec.exhaust.runner_segments if spec.exhaust.runner_inertia else 1
-        row["status"] = f"failed: {failure_text(fail, spec.geometry.n_cylinders, nsi, nse)}"
+        row["status"] = f"failed: {failure_text(fail, spec.geometry.n_cylinders, nsi, nse, net)}"
         row["converged"] = False
         return row
     row["status"] = "ok" if row["converged"] else "not converged"
@@ -162,7 +177,7 @@ def _result_row(spec: EngineSpec, op: OperatingPoint, out: np.ndarray, gas: ther
     power_kw = torque * 2.0 * math.pi * op.speed_rpm / 60.0 / 1e3
     fuel_kg_h = fuel * cycles_per_s * 3600.0
     fuel_energy = fuel * spec.fuel.lhv_j_per_kg
-    e_in = out[L.O_HAIR] + out[L.O_HFUEL]
+    e_in = out[L.O_HAIR] + out[L.O_HFUEL] + out[L.O_QPORT] + out[L.O_QPIPE]
     e_out = out[L.O_HOUT] + wgross + wpump + q
     e_scale = fuel_energy if fuel_energy > 0 else abs(wgross) + abs(wpump) + abs(q)
     row.update(
@@ -195,7 +210,7 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     spec : EngineSpec
     op : OperatingPoint
     solver : SolverSettings
-    state : tuple of (vol, mr[, ref]) arrays, optional
+    state : tuple (vol, mr, ref, q, tcell), optional
         Gas-exchange state to start from (e.g. the converged state of a
         neighbouring point, as returned here); a cold-start estimate otherwise.
     return_traces : bool
@@ -207,40 +222,48 @@ def simulate_point(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings 
     Returns
     -------
     dict
-        Result columns of the contract (``RESULT_COLUMNS``).
+        Result columns of the contract (``RESULT_COLUMNS``), plus ``pipe_substeps`` (largest number of
+        pipe sub-steps per crank step, 1D), ``port_heat_j_per_cycle`` and ``pipe_heat_j_per_cycle``.
     tuple
-        The final (vol, mr, ref) state, reusable as ``state`` of a similar point.
+        The final (vol, mr, ref, q, tcell) state, reusable as ``state`` of a similar point.
     ndarray, optional
-        Traces, shape (2*ncyl + 5, nstep), if requested.
+        Traces, shape (2*ncyl + NTR_EXTRA, nstep), if requested.
     """
     ki = kernel_inputs(spec, op, solver, gas)
     ref = np.zeros((ki.ncyl, 5))          # unknown: the kernel starts from defaults
+    vol0, mr0, q0, tc0 = initial_state(spec, ki)
     if state is None:
-        vol, mr = initial_state(spec, ki)
+        vol, mr, q, tcell = vol0, mr0, q0, tc0
     else:
-        vol, mr = state[0].copy(), state[1].copy()
-        if len(state) > 2:
-            ref = state[2].copy()
-        want_vol = (len(ki.vfix), L.NVCOL)
-        want_mr = ki.ncyl * (ki.nseg_in + ki.nseg_ex + L.NSLUG)
-        if vol.shape != want_vol or mr.shape != (want_mr,) or ref.shape != (ki.ncyl, 5):
-            raise ValueError(f"state: shapes {vol.shape}, {mr.shape}, {ref.shape} do not fit this spec's network "
-                             f"(expected {want_vol}, ({want_mr},), ({ki.ncyl}, 5)); pass the state a run of "
-                             "the same runner layout returned")
+        if len(state) != 5:
+            raise ValueError("state: expected (vol, mr, ref, q, tcell) as returned by simulate_point")
+        vol, mr, ref, q, tcell = (a.copy() for a in state)
+        got = (vol.shape, mr.shape, ref.shape, q.shape, tcell.shape)
+        want = (vol0.shape, mr0.shape, (ki.ncyl, 5), q0.shape, tc0.shape)
+        if got != want:
+            raise ValueError(f"state: shapes {got} do not fit this spec's gas-exchange network (expected {want}); "
+                             "pass the state a run of the same network returned")
     out = np.zeros(L.NOUT)
-    trace = np.zeros((2 * ki.ncyl + 5, ki.nstep))
-    hist = np.zeros((0, L.H_N0 + vol.shape[0] * (L.NVCOL - 1) + mr.shape[0]))
-    _engine.run_engine(ki.par, ki.tab, ki.offs, ki.coeffs, ki.rsp, ki.fuel_c, vol, mr, ref, ki.vfix, out, trace, hist)
+    trace = np.zeros((2 * ki.ncyl + L.NTR_EXTRA, ki.nstep))
+    hist = np.zeros((0, L.H_N0 + vol.shape[0] * (L.NVCOL - 1) + mr.shape[0] + q.size))
+    pipes, geom, ends, endp = ki.pipe_arrays()
+    _engine.run_engine(ki.par, ki.tab, ki.offs, ki.coeffs, ki.rsp, ki.fuel_c, vol, mr, ref, ki.vfix, out, trace, hist,
+                       pipes, geom, q, tcell, ends, endp)
     if op.motored:
         burn = {"ca10_deg_atdc": math.nan, "ca50_deg_atdc": math.nan, "ca90_deg_atdc": math.nan}
     else:
         burn = wiebe.burn_angles(op.spark_deg_btdc, op.bdur_10_90_deg, op.wiebe_m, op.wiebe_a)
-    row = _result_row(spec, op, out, ki.gas, burn)
+    row = _result_row(spec, op, out, ki.gas, burn, ki.net)
     row["fuel_burned_mg_per_cycle"] = out[L.O_FUEL_BURNED] * 1e6
     row["gross_work_j_per_cycle"] = out[L.O_WGROSS]
+    row["pipe_substeps"] = int(out[L.O_SUBSTEPS])
+    row["pipe_courant"] = out[L.O_COURANT]
+    row["port_heat_j_per_cycle"] = out[L.O_QPORT]
+    row["pipe_heat_j_per_cycle"] = out[L.O_QPIPE]
+    st = (vol, mr, ref, q, tcell)
     if return_traces:
-        return row, (vol, mr, ref), trace
-    return row, (vol, mr, ref)
+        return row, st, trace
+    return row, st
 
 
 def _gas_key(op: OperatingPoint, overrides: tuple = ()) -> tuple:

@@ -108,8 +108,10 @@ def test_failure_codes_name_the_volume():
 
 
 def _with_segments(spec, n_in, n_ex):
+    """The lumped gas exchange (the fast option) with ``n_in`` / ``n_ex`` segments per runner."""
     return spec.replace(intake=dataclasses.replace(spec.intake, runner_segments=n_in),
-                        exhaust=dataclasses.replace(spec.exhaust, runner_segments=n_ex))
+                        exhaust=dataclasses.replace(spec.exhaust, runner_segments=n_ex),
+                        gas_exchange=dataclasses.replace(spec.gas_exchange, model="lumped"))
 
 
 @pytest.mark.parametrize("n_in,n_ex", [(1, 1), (2, 3), (4, 1)])
@@ -127,10 +129,10 @@ def test_segmented_runners_keep_the_gas_volume(n_in, n_ex):
 
 
 def test_segmented_runner_converges_in_the_number_of_segments():
-    """The segments discretise a 1D pipe: refining 2 -> 4 segments moves airflow by little.
+    """Lumped option: the segments discretise a pipe, refining 2 -> 4 segments moves airflow by little.
 
     One segment (the plain Helmholtz lumping) is not converged: it misplaces the
-    runner's own compliance, which is why the default is 2.
+    runner's own compliance.
     """
     spec = default_spec()
     op = OperatingPoint(7000.0, 100.0, 45.0, 0.9, 24.0, 6.4)

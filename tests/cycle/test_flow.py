@@ -1,5 +1,6 @@
 """Flow elements against the isentropic-nozzle formulas written out independently here."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -8,7 +9,7 @@ import pytest
 from engine_model import default_spec, gas_set
 from engine_model.cycle import kinematics
 from engine_model.cycle.flow import (orifice_flow, restrictor_flow, throttle_open_area, valve_effective_area,
-                                     valve_lift)
+                                     seat_events, valve_lift)
 from engine_model.thermo import cp_mass
 
 R_AIR = 287.05          # J/(kg K), dry air (textbook value, independent of thermo.py)
@@ -88,16 +89,46 @@ def test_throttle_area_limits():
 
 
 def test_valve_lift_and_area():
+    """Seat to seat: ramp to the ramp height, polynomial flank to the peak, symmetric closing; Cd < 1."""
     spec = default_spec()
     iv = spec.intake_valves
-    th = np.arange(0, 720, 0.5)
-    lift = valve_lift(th, iv.open_deg, iv.duration_deg, iv.max_lift_m, iv.lift_shape)
+    th = np.arange(0, 720, 0.05)
+    lift = valve_lift(th, iv)
     assert lift.max() == pytest.approx(iv.max_lift_m, rel=1e-4)
     open_ = th[lift > 0]
-    assert open_.min() == pytest.approx(iv.open_deg, abs=0.5)
-    assert open_.max() == pytest.approx(iv.open_deg + iv.duration_deg, abs=0.5)
+    assert open_.min() == pytest.approx(iv.open_deg, abs=0.051)   # one grid step
+    assert open_.max() == pytest.approx(iv.open_deg + iv.duration_deg, abs=0.051)
+    # the ramp: constant velocity up to the ramp height, reached ramp_duration after the seat
+    end_ramp = float(valve_lift(iv.open_deg + iv.ramp_duration_deg, iv))
+    half_ramp = float(valve_lift(iv.open_deg + 0.5 * iv.ramp_duration_deg, iv))
+    assert end_ramp == pytest.approx(iv.ramp_height_m, rel=1e-9)
+    assert half_ramp == pytest.approx(0.5 * iv.ramp_height_m, rel=1e-9)
+    # no jump in velocity where the ramp meets the flank: one-sided slopes agree
+    e, h = iv.open_deg + iv.ramp_duration_deg, 1e-4
+    left = (end_ramp - float(valve_lift(e - h, iv))) / h
+    right = (float(valve_lift(e + h, iv)) - end_ramp) / h
+    assert right == pytest.approx(left, rel=1e-3)
+    # and nowhere else off the seat: the lift is smooth between the seat events
+    inner = (th > iv.open_deg + 0.2) & (th < iv.open_deg + iv.duration_deg - 0.2)
+    v = np.gradient(lift, th)
+    assert np.abs(np.diff(v[inner])).max() < 0.01 * np.abs(v).max()
+    # symmetric about the middle of the event
+    mid = iv.open_deg + 0.5 * iv.duration_deg
+    assert np.allclose(valve_lift(mid - th[:400], iv), valve_lift(mid + th[:400], iv), atol=1e-12)
     area = valve_effective_area(th, iv)
     assert area.max() < iv.n_valves * math.pi * iv.diameter_m * iv.max_lift_m   # Cd < 1
+
+
+def test_valve_timing_read_at_a_lift():
+    """With a timing lift, the events are where the lift equals it and the seat events lie outside them."""
+    iv = default_spec().intake_valves
+    iv1 = dataclasses.replace(iv, timing_lift_m=0.001)
+    open_seat, dur_seat = seat_events(iv1)
+    assert dur_seat > iv1.duration_deg
+    assert float(valve_lift(iv1.open_deg, iv1)) == pytest.approx(0.001, rel=1e-6)
+    assert float(valve_lift(iv1.open_deg + iv1.duration_deg, iv1)) == pytest.approx(0.001, rel=1e-6)
+    assert float(valve_lift(open_seat + 0.01, iv1)) > 0.0
+    assert float(valve_lift(open_seat - 0.01, iv1)) == 0.0
 
 
 def test_slider_crank_volumes():

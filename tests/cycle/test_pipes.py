@@ -44,7 +44,7 @@ def _h_mix(hc, y, t):
 
 
 def _props_row(p, t, r, gamma, h, y=(1.0, 0.0, 0.0)):
-    """A 0D-volume property row in the layout of volumes._eval_props."""
+    """A 0D-volume property row in the layout of volumes.eval_props."""
     row = np.zeros((1, VOL.NPR))
     row[0, VOL.PR_P], row[0, VOL.PR_T], row[0, VOL.PR_R], row[0, VOL.PR_G], row[0, VOL.PR_H] = p, t, r, gamma, h
     row[0, VOL.PR_YA], row[0, VOL.PR_YM], row[0, VOL.PR_YP] = y
@@ -484,7 +484,7 @@ def _closed_system(q, tc, prim, fric, work, geom, pipes, bflux, wb, vol, vv, pro
             for s in range(3):
                 hist[j, s] = q[:, s].sum() + vol[0, s] + vol[1, s]
             hist[j, 3] = q[:, 4].sum() + vol[0, V_U] + vol[1, V_U]
-        if VOL._eval_props(vol, vv, 2, hc, rsp, cbuf, props) != 0:
+        if VOL.eval_props(vol, vv, 2, hc, rsp, cbuf, props) != 0:
             return k + 1
         if P.pipe_props(q, tc, geom, ncell, hc, rsp, prim) != 0:
             return -(k + 1)
