@@ -10,40 +10,37 @@ not allowed to change with speed; no per-point tuning).
 
 Which parameters, and why
 -------------------------
-The paper does not give runner lengths, and the lumped model's volumetric
-efficiency versus speed is dominated by runner tuning: with the assumed
-defaults (exhaust 0.45 m, intake 0.22 m) Ga_REL spans -28 % .. +13 % over
-8000-11000 rpm, and a 0.04 m change of either length moves Ga_REL by 10-20 %
-at some speeds.  So the default parameter set is
+The paper does not give the manifolds.  With the assumed defaults (exhaust
+primaries 0.45 m, intake runners 0.22 m, diffuser recovery 0.85) the 1D model
+misses Table 2 by Ga_REL +0.9 % (8000 rpm) .. +17 % (11000 rpm): the pipes
+tune the engine near 10000 rpm where the bench's volumetric efficiency is flat
+near 0.85.  The default parameter set is
 
-1. ``exhaust.runner_length_m`` (primary pipe to the first merge), range
-   0.20-0.70 m: the R6 stock 4-2-1 header primaries are roughly 0.3-0.6 m
-   [A, typical FS/sport-bike headers]; sets the speed of the exhaust
-   scavenging peak.
+1. ``exhaust.runner_length_m`` (exhaust port to the merge), range 0.20-0.70 m
+   [A, sport-bike and FS headers]: the speed of the exhaust scavenging waves.
 2. ``intake.runner_length_m`` (plenum to valve seat, incl. head port), range
-   0.10-0.35 m [A, FS intake manifolds]; sets the ram-tuning speed.
-3. ``intake.restrictor_recovery``, range 0.50-0.95: the fraction of the
+   0.10-0.35 m [A, FS intake manifolds]: the speed of the ram wave.
+3. ``intake.restrictor_recovery``, range 0.30-0.95: the fraction of the
    throat's dynamic head the diffuser behind the 20 mm restrictor recovers.
-   Conical diffusers of 2theta ~ 5-10 deg recover 0.8-0.9 of it, short or
-   partly stalled ones (an FS diffuser is length-limited) 0.5-0.7 (White,
-   Fluid Mechanics, 7th ed., sec. 6.11, diffuser performance maps).  Its
-   effect grows with the throat velocity, i.e. with speed (+0.35 % Ga_REL per
-   0.02 at 8000 rpm, +0.54 % at 11000 rpm on the matched R6), so besides the
-   level it tilts the Ga curve.
+   Long conical diffusers recover 0.8-0.9, short or partly stalled ones 0.5-0.7
+   (White, Fluid Mechanics, 7th ed., sec. 6.11); a throat opening abruptly into
+   a duct of twice its diameter recovers 2 s (1 - s) = 0.375 of it (Borda-Carnot,
+   area ratio s = 0.25), hence the lower bound.  Its loss grows with the square
+   of the flow, so it sets the level and tilts Ga_REL with speed; it also
+   stands for the flow losses of that kind the model lacks (air filter, inlet
+   duct).
 
-Why recovery and not the restrictor Cd (the set used before): a screen of 14
-candidate global parameters (:mod:`engine_model.calibration.screen`,
-``benchmarks/airflow_screen.py``; docs/sections/calibration.md) showed that
-around the matched runner lengths Cd moves Ga_REL by only 0.05-0.10 % per
-0.006 (the restrictor is far from choking at the matched flows), so it was
-barely determined (95 % interval +-0.21) and 0.94-correlated with the exhaust
-length.  With recovery as the third parameter the least-squares optimum has
-rms Ga_REL 0.77 % (was 1.19 %), the largest parameter correlation is 0.66
-and recovery is determined to +-0.06; Cd stays at its spec value (0.97,
-ISO 5167-4 venturis 0.95-0.995).  The next best third parameters in real
-matches were the plenum volume (rms 0.89 %, at its 1.5 L bound), the intake
-runner diameter (0.90 %, correlated 0.92 with the intake length) and the
-exhaust collector volume (1.05 %).  Other sets can be passed as ``parameters``.
+Why these three (measured with the 1D model, 2026-11-26, docs/sections/calibration.md):
+a differential-evolution search over each candidate triple (72 parameter sets
+x 12 generations) reached rms Ga_REL 1.6 % with these three, 2.5 % with the
+exhaust pipe diameter in place of the recovery (at its 40 mm bound), and no
+linearised triple of the 17 screened candidates (:mod:`engine_model.calibration.screen`)
+did better around the first match.  The same search with the valve timings
+read at 1 mm lift instead of seat to seat reached only 9 %, which supports
+reading the paper's timings seat to seat (``ValveSet.timing_lift_m``).  The
+matched lengths lie near their lower bounds: the data want the wave tuning
+out of the 8000-11000 rpm window, and a flat VE there is what the bench shows.
+Other sets can be passed as ``parameters``.
 
 Method
 ------

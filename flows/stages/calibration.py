@@ -10,7 +10,8 @@ into ``<out>/sweeps/``; a re-run into the same folder reads finished batches
 back.  Outputs in ``<out>/calibration/``: ``airflow_match.parquet``,
 ``combustion_params.parquet`` (at the given eta_trans, default 0.95),
 ``combustion_params_joint_eta.parquet`` (at the jointly fitted shared eta_trans), ``eta_sensitivity.parquet``,
-``eta_relation.parquet``, ``summary.json``, figures and ``calibration.md`` / ``.html``.
+``eta_relation.parquet``, ``summary.json``, figures (Ga_REL, identification planes, eta relation, the
+pressures over the cycle at the point nearest 9000 rpm) and ``calibration.md`` / ``.html``.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import datetime as _dt
 import time
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from flows import prefect_env
@@ -33,7 +35,8 @@ from engine_model import calibration as cal  # noqa: E402
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.io import write_json, write_parquet  # noqa: E402
-from engine_model.report import write_report  # noqa: E402
+from engine_model.report import plot_traces, write_report  # noqa: E402
+from engine_model.sim.prepare import SolverSettings  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
 AIRFLOW_COLUMNS = ["point_id", "speed_rpm", "air_mass_flow_kg_h_meas", "air_mass_flow_kg_h_sim", "ga_rel_pct"]
@@ -76,6 +79,7 @@ def run(ctx: StageContext) -> dict:
     write_parquet(eta, out / "eta_sensitivity.parquet")
     write_parquet(relation, out / "eta_relation.parquet")
     cal.plot_eta_relation(eta, iso, relation, figs / "eta_relation.png")
+    traces = _pressure_traces(eng.with_values(match.values), meas, params, s, figs)
     joint = cal.joint_fit(ident)
     ident_joint = cal.identify_at_eta(ident, joint.eta_by_throttle())
     params_joint = ident_joint.table
@@ -108,6 +112,9 @@ def run(ctx: StageContext) -> dict:
                               + ", ".join(match.names) + "):",
                               pd.DataFrame(match.correlation, columns=list(match.names))]),
         ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
+        ("Pressures over the cycle", ["At the bench point nearest 9000 rpm, with the matched engine and the identified "
+                                      "burn: cylinders, manifold volumes and the waves in the pipes of cylinder 1."]
+         + traces),
         ("Identification at the jointly fitted eta_trans", [
             joint.summary(), joint.table, ident_joint.summary(),
             params_joint[[c for c in show[:3] + ["eta_trans"] + show[3:] if c in params_joint.columns]]]),
@@ -122,6 +129,19 @@ def run(ctx: StageContext) -> dict:
     write_json({"kind": "calibration", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                 "created": _dt.datetime.now().isoformat(timespec="seconds"), **summary}, out / "summary.json")
     return summary
+
+
+def _pressure_traces(spec, meas, params, s, figs) -> list:
+    """The pressure-trace figure at the identified bench point nearest 9000 rpm (empty if none identified)."""
+    ok = params[np.isfinite(params["bdur_10_90_deg"].to_numpy(float))] if len(params) else params
+    if not len(ok):
+        return []
+    pid = ok.iloc[int(np.argmin(np.abs(ok["speed_rpm"].to_numpy(float) - 9000.0)))]
+    bench_row = meas.set_index("point_id").loc[pid["point_id"]]
+    path = figs / f"pressure_traces_{pid['point_id']}.png"
+    plot_traces(spec, bench_row, float(pid["bdur_10_90_deg"]), float(pid["wiebe_m"]),
+                SolverSettings(step_deg=s.step_deg), path)
+    return [path]
 
 
 def calibrated_engine(engine: CalibratedEngine, summary: dict) -> CalibratedEngine:
