@@ -19,7 +19,6 @@ temperature inversion.  Run: ``.venv/bin/python benchmarks/pipe_kernel.py [--cyc
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import numpy as np
@@ -27,6 +26,7 @@ from numba import njit
 
 from engine_model.cycle import pipe_bc as B
 from engine_model.cycle import pipes as P
+from engine_model.cycle.pipe_scheme import advance
 from engine_model.cycle import volumes as VOL
 from engine_model.thermo import enthalpy_coeffs, gas_set
 
@@ -127,7 +127,7 @@ def run_cycles(ncyc, q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv,
                     c = cda[ip, side, k]
                     B.bc_orifice(prim, pipes, geom, ip, side, c, c, props, kv[ip, side], wb, bflux)
             cmax = max(cmax, dt / P.max_stable_dt(prim, geom, ncell, 1.0))
-            P.advance(q, prim, geom, pipes, bflux, fric, dt, work)
+            advance(q, prim, geom, pipes, bflux, fric, dt, work)
     return cmax
 
 
@@ -149,7 +149,7 @@ def record_cycle(q, tc, prim, fric, work, geom, pipes, bflux, wb, props, kv, cda
                 c = cda[ip, side, k]
                 B.bc_orifice(prim, pipes, geom, ip, side, c, c, props, kv[ip, side], wb, bflux)
         brec[k] = bflux
-        P.advance(q, prim, geom, pipes, bflux, fric, dt, work)
+        advance(q, prim, geom, pipes, bflux, fric, dt, work)
 
 
 @njit(cache=False)
@@ -175,7 +175,7 @@ def replay(part, nstep, qrec, trec, prec, brec, wrec, crec, q, tc, prim, fric, w
                     c = crec[j, ip, side]
                     B.bc_orifice(prim, pipes, geom, ip, side, c, c, props, kv[ip, side], wb, bflux)
         elif part == 3:
-            P.advance(q, prim, geom, pipes, bflux, fric, dt, work)
+            advance(q, prim, geom, pipes, bflux, fric, dt, work)
         elif part == 4:
             P.friction_factors(prim, geom, ncell, fric)
 
@@ -209,7 +209,6 @@ def main(argv=None) -> int:
     cda, kv = valve_tables(net)
     q, tc, prim, fric, work, bflux, wb = net.new_arrays()
     for ip in range(net.npipe):
-        st = props[kv[ip, 0]]
         i0, n = net.pipes[ip]
         exhaust = ip >= 4
         t = 850.0 if exhaust else 310.0

@@ -230,8 +230,10 @@ EFFECTS: dict[str, Effect] = {e.name: e for e in (
         (_p("area_factor", "-", 1.0, 0.3, 2.0, 0.6,
             "multiplier on exhaust.tailpipe_cd (effective outlet area); 0.6 roughly triples the "
             "back pressure at a given flow"),),
-        f"{_HEYWOOD}, sec. 6.5 (exhaust back pressure lowers volumetric efficiency via residuals).",
-        "model", (("air_mass_flow_kg_h", -1), ("brake_torque_nm", -1))),
+        f"{_HEYWOOD}, sec. 6.5 (exhaust back pressure lowers volumetric efficiency via residuals); "
+        "with 1D pipes the outlet restriction also changes the tailpipe reflection, so the airflow "
+        "moves up at some speeds and down at others (tuning), while the pumping loss always grows.",
+        "model", (("air_mass_flow_kg_h", 0), ("brake_torque_nm", -1))),
     Effect(
         "intake_air_temperature",
         "The air entering the throttle is warmer than the cell temperature the model uses (engine-bay "

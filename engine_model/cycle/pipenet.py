@@ -18,7 +18,8 @@ from numba import njit
 
 from engine_model.cycle.layout import (BC_OPEN, E_KIND, E_VOL, FASTMATH, V_MA, V_MM, V_MP, V_U)
 from engine_model.cycle.pipe_bc import bc_open, bc_orifice
-from engine_model.cycle.pipes import (PM_R, PM_T, Q_A, Q_E, Q_M, Q_P, advance, friction_factors,
+from engine_model.cycle.pipe_scheme import advance
+from engine_model.cycle.pipes import (PM_R, PM_T, Q_A, Q_E, Q_M, Q_P, friction_factors,
                                       max_stable_dt, pipe_props)
 from engine_model.cycle.volumes import PR_GV, PR_RT
 

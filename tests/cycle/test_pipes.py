@@ -15,6 +15,7 @@ from scipy.special import erf
 
 from engine_model.cycle import pipe_bc as B
 from engine_model.cycle import pipes as P
+from engine_model.cycle.pipe_scheme import advance
 from engine_model.cycle import volumes as VOL
 from engine_model.cycle.layout import V_MA, V_MM, V_MP, V_T, V_U
 from engine_model.thermo import constant_cp_gas_set, enthalpy_coeffs, gas_set
@@ -153,7 +154,7 @@ def _run_walls(net, q, tc, hc, rsp, t_end, cfl=0.9, record=None):
         B.bc_wall(prim, net.pipes, net.geom, 0, 0, bflux)
         B.bc_wall(prim, net.pipes, net.geom, 0, 1, bflux)
         dt = min(P.max_stable_dt(prim, net.geom, net.ncell, cfl), t_end - t)
-        P.advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
+        advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
         t += dt
     assert P.pipe_props(q, tc, net.geom, net.ncell, hc, rsp, prim) == 0
     return prim, np.array(trace)
@@ -265,7 +266,7 @@ def _run(net, q, tc, hc, rsp, t_end, ends, cfl=0.9, each=None):
             each(t, prim)
         ends(prim, bflux)
         dt = min(P.max_stable_dt(prim, net.geom, net.ncell, cfl), t_end - t)
-        P.advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
+        advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
         t += dt
         nstep += 1
     assert P.pipe_props(q, tc, net.geom, net.ncell, hc, rsp, prim) == 0
@@ -371,7 +372,7 @@ def test_gas_at_rest_in_a_pipe_of_varying_area_stays_at_rest():
         P.friction_factors(prim, net.geom, net.ncell, fric)
         B.bc_wall(prim, net.pipes, net.geom, 0, 0, bflux)
         B.bc_wall(prim, net.pipes, net.geom, 0, 1, bflux)
-        P.advance(q, prim, net.geom, net.pipes, bflux, fric, P.max_stable_dt(prim, net.geom, net.ncell, 0.9), work)
+        advance(q, prim, net.geom, net.pipes, bflux, fric, P.max_stable_dt(prim, net.geom, net.ncell, 0.9), work)
     assert P.pipe_props(q, tc, net.geom, net.ncell, hc, rsp, prim) == 0
     umax = np.abs(prim[P.PM_U]).max()
     print("rest: max |u| =", umax, "p spread", np.ptp(prim[P.PM_P]))
@@ -397,7 +398,7 @@ def test_rest_test_can_fail_a_source_term_that_is_not_balanced():
         B.bc_wall(prim, net.pipes, net.geom, 0, 0, bflux)
         B.bc_wall(prim, net.pipes, net.geom, 0, 1, bflux)
         dt = P.max_stable_dt(prim, net.geom, net.ncell, 0.9)
-        P.advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
+        advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
         q[:, P.Q_MOM] += dt * 0.01 * prim[P.PM_P] * (net.geom[P.G_AR] - net.geom[P.G_AL])
     assert P.pipe_props(q, tc, net.geom, net.ncell, hc, rsp, prim) == 0
     assert np.abs(prim[P.PM_U]).max() > 1e-3
@@ -446,7 +447,7 @@ def _acoustic_signal(open_right, n=100, length=1.0, periods=20):
             B.bc_pressure(prim, net.pipes, net.geom, 0, 1, amb, 0, bflux)
         else:
             B.bc_wall(prim, net.pipes, net.geom, 0, 1, bflux)
-        P.advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
+        advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
     return np.arange(nstep) * dt, sig, f_expect
 
 
@@ -494,7 +495,7 @@ def _closed_system(q, tc, prim, fric, work, geom, pipes, bflux, wb, vol, vv, pro
         c1 = cda_max * max(0.0, math.sin(ph + 2.0))
         B.bc_orifice(prim, pipes, geom, 0, 0, c0, c0, props, 0, wb, bflux)
         B.bc_orifice(prim, pipes, geom, 0, 1, c1, c1, props, 1, wb, bflux)
-        P.advance(q, prim, geom, pipes, bflux, fric, dt, work)
+        advance(q, prim, geom, pipes, bflux, fric, dt, work)
         for s in range(3):
             vol[0, s] -= dt * bflux[0, 0, s]
             vol[1, s] += dt * bflux[0, 1, s]
@@ -737,7 +738,7 @@ def test_apply_end_flux_moves_what_crosses_each_end_into_or_out_of_the_volume():
     assert bflux[0, 0, P.Q_A] > 0.0 and bflux[0, 1, P.Q_P] > 0.0
     before = np.concatenate([q.sum(axis=0)[[0, 1, 2, 4]], vol.sum(axis=0)[[0, 1, 2, 3]]])
     dt = 1e-5
-    P.advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
+    advance(q, prim, net.geom, net.pipes, bflux, fric, dt, work)
     v0 = vol.copy()
     B.apply_end_flux(bflux, 0, 0, dt, vol, 0)
     B.apply_end_flux(bflux, 0, 1, dt, vol, 1)

@@ -125,14 +125,19 @@ def test_bad_spec_override_names_row_and_key():
 
 
 def test_a_state_of_another_runner_layout_is_refused():
-    """A gas-exchange state from a network of another shape (here 2 runner segments) is a ValueError, not a crash."""
+    """A gas-exchange state from a network of another shape (other pipe cells in 1D, other runner segments
+    in the lumped model) is a ValueError, not a crash."""
     from engine_model import OperatingPoint, SolverSettings, simulate_point
     spec = default_spec()
     op = OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4)
-    _, state = simulate_point(spec.with_values({"intake.runner_segments": 2}), op,
-                              SolverSettings(max_cycles=1, min_cycles=1))
-    with pytest.raises(ValueError, match="do not fit this spec's network"):
+    one = SolverSettings(max_cycles=1, min_cycles=1)
+    _, state = simulate_point(spec.with_values({"gas_exchange.cell_length_m": 0.06}), op, one)
+    with pytest.raises(ValueError, match="do not fit this spec's gas-exchange network"):
         simulate_point(spec, op, state=state)
-    short = (state[0], state[1][:-1], state[2])
+    lumped = spec.with_values({"gas_exchange.model": "lumped"})
+    _, state = simulate_point(lumped.with_values({"intake.runner_segments": 2}), op, one)
+    with pytest.raises(ValueError, match="do not fit this spec's gas-exchange network"):
+        simulate_point(lumped, op, state=state)
+    short = (state[0], state[1][:-1]) + tuple(state[2:])
     with pytest.raises(ValueError, match="do not fit"):
-        simulate_point(spec.with_values({"intake.runner_segments": 2}), op, state=short)
+        simulate_point(lumped.with_values({"intake.runner_segments": 2}), op, state=short)
