@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 import time
 from pathlib import Path
 
@@ -64,7 +65,7 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
                "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
                "gap_reduction_pct": d.gap_reduction_pct, "base_theta": info["theta"],
                "overrides": dict(ctx.engine.overrides), "simulations": ev.points,
-               "wall_s": round(time.perf_counter() - t0, 1), "report": str(paths["markdown"])}
+               "wall_s": round(time.perf_counter() - t0, 1), "report": os.path.relpath(paths["markdown"], ctx.work)}   # relative: the folder is renamed
     pairs = d.extra.get("pairs")
     if pairs is not None:
         summary["pair_named"] = list(pairs.named) if pairs.named else None

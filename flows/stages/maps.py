@@ -10,6 +10,7 @@ No physics here: the stage wires the evaluations to Dask and writes the files.
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import time
 from pathlib import Path
 
@@ -51,7 +52,8 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
-               "files": {k: str(v) for k, v in paths.items()}, "wall_s": round(time.perf_counter() - t0, 1)}
+               "files": {k: os.path.relpath(v, ctx.work) for k, v in paths.items()},   # relative: the run folder is renamed
+               "wall_s": round(time.perf_counter() - t0, 1)}
     write_json(summary, ctx.work / "maps" / "run.json")
     return summary
 

@@ -93,6 +93,7 @@ def test_measured_mbt_bracketing():
     assert np.isnan(mbt) and why.startswith("knock-limited")
 
 
+@pytest.mark.slow   # the virtual-bench sweep fixture (~35 s with the 1D gas exchange)
 def test_joint_result_table(sweep_data):
     law, plan, meas, ok, res = sweep_data
     assert (meas.groupby("op_id")["status"].apply(lambda s: (s == "ok").sum()) >= 3).all(), \
@@ -105,8 +106,11 @@ def test_joint_result_table(sweep_data):
 
 @pytest.mark.slow
 def test_joint_beats_per_point_against_hidden_law(seeded_errors):
-    """Pooled over 8 noise seeds (16 sweeps; 20 seeds measured, host and generic builds identical): joint RMSE
-    2.65-2.71 deg / 0.87-0.89 per 8-seed block against per-point 3.4-5.3 deg / 0.98-1.24.
+    """Pooled over 8 noise seeds (16 sweeps).  Lumped gas exchange (20 seeds measured, host and generic builds
+    identical): joint RMSE 2.65-2.71 deg / 0.87-0.89 per 8-seed block against per-point 3.4-5.3 deg / 0.98-1.24.
+    1D gas exchange (seeds 0-7): joint 3.29 deg against per-point 4.11 deg; the joint error is now mostly a
+    bias per sweep (-3 deg at 20 %/9000 rpm, +3 to +6 deg at 60 %/12000 rpm) that the noise seeds do not
+    average away, so the joint's advantage is asserted as 10 %, not the 20 % of the lumped model.
 
     The 95 % regions cover the truth in 78 % of 40 sweeps, not 95 %: they are optimistic (the law moves the
     burn along the sweep by more than the spark-slope profile captures on a 5 x 5 grid).  Asserted: at least
@@ -115,12 +119,13 @@ def test_joint_beats_per_point_against_hidden_law(seeded_errors):
     d = seeded_errors
     rmse = lambda e: float(np.sqrt(np.mean(e ** 2)))  # noqa: E731
     j, p = d[d["kind"] == "joint"], d[d["kind"] == "per_point"]
-    assert rmse(j["eb"]) < 0.8 * rmse(p["eb"]), (rmse(j["eb"]), rmse(p["eb"]))
+    assert rmse(j["eb"]) < 0.9 * rmse(p["eb"]), (rmse(j["eb"]), rmse(p["eb"]))
     assert rmse(j["em"]) <= rmse(p["em"]) + 0.1, (rmse(j["em"]), rmse(p["em"]))
     assert rmse(j["eb"]) <= 3.5 and rmse(j["em"]) <= 1.1, (rmse(j["eb"]), rmse(j["em"]))
     assert j["covered"].astype(bool).mean() >= 0.5, j
 
 
+@pytest.mark.slow   # the virtual-bench sweep fixture (~35 s with the 1D gas exchange)
 def test_plan_rows_mismatch_is_a_clear_error(sweep_data):
     law, plan, meas, ok, res = sweep_data
     missing = str(ok["point_id"].iloc[0])

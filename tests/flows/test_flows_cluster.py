@@ -107,8 +107,10 @@ def test_worker_killed_mid_sweep(prefect_api, tmp_path, external_cluster):
     _check_dataset(out, plan)
     counts = store.attempt_counts(out / "sweep")
     assert set(counts) == set(range(40))
-    # chunks finished before the kill ran exactly once; at most the chunk in flight on the dead worker re-ran
+    # chunks stored before the kill ran exactly once; only what the dead worker held re-ran: the chunk it
+    # was running and the one the scheduler had queued on it (worker-saturation 1.1 gives a 1-thread worker
+    # ceil(1.1) = 2 slots; measured: 1 or 2 re-runs depending on where in a chunk the kill lands)
     assert all(counts[c] == 1 for c in done_at_kill)
-    assert sum(counts.values()) <= 40 + 1
+    assert sum(counts.values()) <= 40 + 2
     man = json.loads((out / "manifest.json").read_text())
     assert man["status"] == "complete" and man["counts"]["points"] == 40

@@ -185,6 +185,7 @@ def test_decide_zone1_and_knock_border():
 
 # --------------------------------------------------------------------------- the built map
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_feasible_cells_have_finite_values_and_known_reasons(built):
     _spec, _model, _rec, res = built
     c = res.cells
@@ -197,6 +198,7 @@ def test_feasible_cells_have_finite_values_and_known_reasons(built):
     assert (c.loc[c["feasible"], "spark_source"] == "simulation").all()
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_spark_table_is_smooth(built):
     _spec, _model, _rec, res = built
     spark = res.table("spark_deg_btdc")
@@ -207,6 +209,7 @@ def test_spark_table_is_smooth(built):
     assert res.stats["smoothing"]["bound_met"]
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_knock_limit_holds_when_the_table_is_simulated_again(built):
     spec, model, _rec, res = built
     c = res.cells[res.cells["feasible"]]
@@ -230,6 +233,7 @@ def _fine_sweep(spec, model, cell, lo, hi):
     return res
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_mbt_and_knock_border_agree_with_a_brute_force_sweep(built):
     """MBT within 1 deg of a 1-deg brute-force sweep (parabola fitted +-6 deg around its best point).
 
@@ -259,6 +263,7 @@ def test_mbt_and_knock_border_agree_with_a_brute_force_sweep(built):
     assert cell["brake_torque_nm"] >= best * 0.995
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_injection_time_is_the_analytic_formula(built):
     spec, _model, _rec, res = built
     c = res.cells[res.cells["injection_source"] == "simulation"]
@@ -280,6 +285,7 @@ def test_injection_time_is_the_analytic_formula(built):
                                -2.0 * inj.dead_time_slope_s_per_v * 1e3, atol=1e-9)
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_starting_map_is_retarded_by_the_paper_amount(built):
     _spec, _model, _rec, res = built
     d = res.cells["spark_deg_btdc"] - res.cells["spark_start_deg_btdc"]
@@ -287,6 +293,7 @@ def test_starting_map_is_retarded_by_the_paper_amount(built):
     np.testing.assert_allclose(d, res.settings.start_retard_deg)
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_evaluations_are_batched_per_stage_with_cells_contiguous(built):
     _spec, model, rec, res = built
     assert res.stats["evaluate_calls"] == len(rec.plans) <= res.settings.max_stages + res.settings.max_fix_rounds + 1
@@ -305,6 +312,7 @@ def test_evaluations_are_batched_per_stage_with_cells_contiguous(built):
     assert res.stats["simulated_points"] == sum(len(p) for p in rec.plans)
 
 
+@pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
 def test_write_maps_contract_round_trip_and_atomic_replace(built, tmp_path, monkeypatch):
     _spec, _model, _rec, res = built
     out = tmp_path / "run" / "maps"
