@@ -79,8 +79,7 @@ ch. 4 (exact Riemann solver, used by the tests), sec. 10.4-10.6 (HLLC, wave-spee
 ch. 13-14 (TVD slope limiters, MUSCL-Hancock).
 van Leer, B., "Towards the ultimate conservative difference scheme IV", J. Comput. Phys. 23 (1977)
 276-299 (the monotonised-central slope); "... V", J. Comput. Phys. 32 (1979) 101-136 (MUSCL).
-Haaland, S.E., J. Fluids Eng. 105 (1983) 89-90 (friction factor).
-Colburn, A.P., Trans. AIChE 29 (1933) 174-210 (heat transfer / friction analogy).
+Haaland (1983) and Colburn (1933) for the friction and heat-transfer factors: :mod:`engine_model.cycle.pipes`.
 """
 
 import math

@@ -52,13 +52,9 @@ Coupling to a crank-angle driver
 
 References
 ----------
-Toro, E.F., Riemann Solvers and Numerical Methods for Fluid Dynamics, 3rd ed., Springer 2009:
-ch. 4 (exact Riemann solver, used by the tests), sec. 10.4-10.6 (HLLC, wave-speed estimates),
-ch. 13-14 (TVD slope limiters, MUSCL-Hancock).
-van Leer, B., "Towards the ultimate conservative difference scheme IV", J. Comput. Phys. 23 (1977)
-276-299 (the monotonised-central slope); "... V", J. Comput. Phys. 32 (1979) 101-136 (MUSCL).
-Haaland, S.E., J. Fluids Eng. 105 (1983) 89-90 (friction factor).
+Haaland, S.E., J. Fluids Eng. 105 (1983) 89-90 (friction factor, ``friction_factors``).
 Colburn, A.P., Trans. AIChE 29 (1933) 174-210 (heat transfer / friction analogy).
+The scheme's references (Toro 2009, van Leer 1977/1979) are in :mod:`engine_model.cycle.pipe_scheme`.
 """
 
 import math
