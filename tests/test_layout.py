@@ -160,13 +160,17 @@ def test_root_holds_few_modules_and_modules_stay_small():
     assert set(long) <= set(LONG_MODULES), long
 
 
-@pytest.mark.parametrize("pattern", ["DESIGN.md", "shared/STACK", "STACK-NOTES"])
+# Names of notes that live outside the repository (spelt in pieces so that this file does not name them).
+OUTSIDE_NOTES = ["DESIGN" + ".md", "shared/" + "STACK", "STACK" + "-NOTES"]
+
+
+@pytest.mark.parametrize("pattern", OUTSIDE_NOTES)
 def test_nothing_points_outside_the_repository(pattern):
     hits = []
     files = [ROOT / n for n in ("README.md", "Makefile", "pyproject.toml")]
     files += [p for d in ("engine_model", "flows", "tests", "benchmarks", "docs", ".ci") for p in (ROOT / d).rglob("*")]
     for f in files:
-        if f.is_file() and f.suffix in (".py", ".md", ".toml", ".txt", ".cfg", "") and f.name != "test_layout.py":
+        if f.is_file() and f.suffix in (".py", ".md", ".toml", ".txt", ".cfg", ""):
             if pattern in f.read_text(errors="ignore"):
                 hits.append(str(f.relative_to(ROOT)))
     assert hits == []
