@@ -47,4 +47,4 @@ def run(ctx: StageContext) -> dict:
     meas = res.measured
     return {"doe_points": len(meas), "status": meas["status"].value_counts().to_dict(),
             "identification": res.identification_error, "model_chosen": dict(res.model.chosen_),
-            "holdout": res.holdout_error, "model_path": str(mdir / "model.json"), "lines": lines}
+            "holdout": res.holdout_error, "model_path": "model/model.json", "lines": lines}   # relative to the run folder (renamed when complete)
