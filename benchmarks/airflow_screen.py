@@ -4,10 +4,10 @@
     .venv/bin/python benchmarks/airflow_screen.py match NAME1,NAME2,NAME3 [--start NAME=V ...] [--nfev 12]
 
 ``screen``: Ga_REL at the base parameter set and central differences for every
-candidate of :data:`engine_model.calibrate_screen.CANDIDATES` (one batch,
+candidate of :data:`engine_model.calibration.screen.CANDIDATES` (one batch,
 2 processes), the data's smooth-curve floor, and every triple ranked by its
 linearised minimax / least-squares fit.  ``match``: the real bounded least
-squares (:func:`engine_model.calibrate_airflow.match_airflow`) for one triple,
+squares (:func:`engine_model.calibration.airflow.match_airflow`) for one triple,
 started at the base (no coarse grid), in-process on 2 processes, 1 deg step.
 """
 
@@ -22,10 +22,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, simulate
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
 from engine_model.bench import load_bench
-from engine_model.calibrate_airflow import match_airflow
-from engine_model.calibrate_screen import CANDIDATES, rank_subsets, sensitivities, smooth_floor
+from engine_model.calibration.airflow import match_airflow
+from engine_model.calibration.screen import CANDIDATES, rank_subsets, sensitivities, smooth_floor
 
 SOLVER = SolverSettings(step_deg=1.0)
 # the match on main before this screen (exhaust, intake runner, restrictor Cd)

@@ -1,13 +1,13 @@
 """Speed of the cycle kernel (prints figures; not part of the test run).
 
-Figures printed:
+Figures printed, for the 1D gas exchange (the default) and the lumped runners (the fast option) in the
+same run:
 - numba compile time, cold (fresh cache folder, in a subprocess) and cached;
 - microseconds per cylinder-cycle and milliseconds per 4-cylinder cycle;
 - milliseconds per converged operating point from a cold start, median over
   >= 50 points spread over throttle, speed and spark;
 - milliseconds per point inside a Wiebe sweep at one operating point, where
-  consecutive points start from the previous converged gas-exchange state
-  (default model, and again with the intake runners' backflow slug);
+  consecutive points start from the previous converged gas-exchange state;
 - cycles to converge, and the largest deviation of the converged answer
   (trapped mass, net IMEP) from the long-run periodic solution (150 plain
   cycles) on a subset of the points of both parts.
@@ -63,7 +63,8 @@ def _deviation(spec, solver, ops, rows) -> tuple[float, float]:
 
 def _wiebe_sweep(spec, solver, grid, check, label) -> None:
     """Time a Wiebe sweep at 9000 rpm WOT (consecutive rows reuse the converged state) and check it."""
-    from engine_model import OperatingPoint, simulate
+    from engine_model import OperatingPoint
+    from engine_model.sim import simulate
 
     sweep = pd.DataFrame({"speed_rpm": 9000.0, "throttle_pct": 100.0, "spark_deg_btdc": 50.0, "lambda": 0.9,
                           "bdur_10_90_deg": [g[0] for g in grid], "wiebe_m": [g[1] for g in grid]})
@@ -82,27 +83,15 @@ def _wiebe_sweep(spec, solver, grid, check, label) -> None:
           f"trapped mass {dev[0] * 100:.3f} %, net IMEP {dev[1] * 100:.3f} %")
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--points", type=int, default=60, help="operating points for the cold-start median (>= 50)")
-    ap.add_argument("--sweep", type=int, default=49, help="points of the Wiebe sweep (7 x 7 by default)")
-    ap.add_argument("--check", type=int, default=12, help="points of each part checked against a 150-cycle run")
-    ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
-    args = ap.parse_args(argv)
+def _cells(spec) -> int:
+    from engine_model.sim.prepare import pipe_network
+    return pipe_network(spec)[0].ncell
 
-    print(f"load average at start: {os.getloadavg()[0]:.2f}")
-    if not args.no_compile:
-        with tempfile.TemporaryDirectory() as cache:
-            imp_c, cold = _compile_time(cache)
-            imp_w, warm = _compile_time(cache)
-        print("numba compile + first point (subprocess, fresh cache):  "
-              f"{cold:6.2f} s   (import {imp_c:.2f} s)")
-        print("cached load + first point   (subprocess, warm cache):   "
-              f"{warm:6.2f} s   (import {imp_w:.2f} s)")
 
-    from engine_model import OperatingPoint, SolverSettings, default_spec, simulate_point
+def _measure(spec, args) -> None:
+    """Cold points and a Wiebe sweep of one gas-exchange model."""
+    from engine_model import OperatingPoint, SolverSettings, simulate_point
 
-    spec = default_spec()
     solver = SolverSettings()
     simulate_point(spec, OperatingPoint(9000.0, 100.0, 50.0, 0.9, 24.0, 6.4), solver)  # warm this process
 
@@ -128,8 +117,8 @@ def main(argv=None) -> int:
     per_cycle = t_point / cycles
     cpu_cycle = c_point / cycles
     ncyl = spec.geometry.n_cylinders
-    print(f"\nstep {solver.step_deg} deg, tolerance {solver.tolerance:g}, {n} points "
-          f"(3000-13000 rpm, 20-100 % throttle, spark 20-50 deg BTDC)")
+    print(f"\nstep {solver.step_deg} deg (1D: refined where a pipe wave would cross more than cfl cells), "
+          f"tolerance {solver.tolerance:g}, {n} points (3000-13000 rpm, 20-100 % throttle, spark 20-50 deg BTDC)")
     print(f"  per 4-cylinder cycle:         median {np.median(per_cycle) * 1e3:7.2f} ms"
           f"   (CPU {np.median(cpu_cycle) * 1e3:.2f} ms)")
     print(f"  per cylinder-cycle:           median {np.median(per_cycle) / ncyl * 1e6:7.0f} us"
@@ -145,9 +134,36 @@ def main(argv=None) -> int:
     k = int(round(np.sqrt(args.sweep)))
     grid = [(b, m) for b in np.linspace(20.0, 50.0, k) for m in np.linspace(2.0, 8.0, k)]
     _wiebe_sweep(spec, solver, grid, args.check, "")
-    # the same sweep with the intake runners' backflow slug (an option, off by default; docs/sections/speed.md)
-    _wiebe_sweep(spec.with_values({"intake.runner_backflow_slug": True}), solver, grid, args.check,
-                 ", intake.runner_backflow_slug = true")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--points", type=int, default=60, help="operating points for the cold-start median (>= 50)")
+    ap.add_argument("--sweep", type=int, default=49, help="points of the Wiebe sweep (7 x 7 by default)")
+    ap.add_argument("--check", type=int, default=12, help="points of each part checked against a 150-cycle run")
+    ap.add_argument("--no-compile", action="store_true", help="skip the compile-time measurement")
+    ap.add_argument("--models", default="1d,lumped", help="gas-exchange models to measure (comma separated)")
+    args = ap.parse_args(argv)
+
+    print(f"load average at start: {os.getloadavg()[0]:.2f}")
+    if not args.no_compile:
+        with tempfile.TemporaryDirectory() as cache:
+            imp_c, cold = _compile_time(cache)
+            imp_w, warm = _compile_time(cache)
+        print("numba compile + first point (subprocess, fresh cache):  "
+              f"{cold:6.2f} s   (import {imp_c:.2f} s)")
+        print("cached load + first point   (subprocess, warm cache):   "
+              f"{warm:6.2f} s   (import {imp_w:.2f} s)")
+
+    from engine_model import default_spec
+
+    models = args.models.split(",")
+    for model in models:
+        spec = default_spec().with_values({"gas_exchange.model": model})
+        print(f"\n===== gas_exchange.model = {model!r}" + (
+            f" (cells of {spec.gas_exchange.cell_length_m * 1e3:.0f} mm, "
+            f"{_cells(spec)} cells in all)" if model == "1d" else ""))
+        _measure(spec, args)
     print(f"load average at end: {os.getloadavg()[0]:.2f}")
     return 0
 

@@ -66,7 +66,8 @@ def make_plan(n_points: int) -> pd.DataFrame:
 DIRECT = textwrap.dedent("""
     import json, resource, sys, time
     import pandas as pd
-    from engine_model import SolverSettings, default_spec, simulate
+    from engine_model import SolverSettings, default_spec
+    from engine_model.sim import simulate
     plan = pd.read_parquet(sys.argv[1])
     solver = SolverSettings(step_deg=float(sys.argv[2]), tolerance=float(sys.argv[3]))
     spec = default_spec()

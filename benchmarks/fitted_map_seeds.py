@@ -1,6 +1,6 @@
 """How often does the fitted global model's ECU map pass the issue's acceptance, over identification-noise seeds?
 
-The setup of ``tests/test_maps.py::fitted_map``: 48 LHS points (throttle 20-100 %, 5000-13000 rpm, spark -20..+5
+The setup of ``tests/tables/test_maps.py::fitted_map``: 48 LHS points (throttle 20-100 %, 5000-13000 rpm, spark -20..+5
 deg from the MBT prior, design seed 7), a load table of the cycle model over the data's box, ECU grid 30/100 %
 x 7000/12000 rpm, the truth judging the map with 1-deg sweeps.  Per noise seed and variant: fit, build the map,
 check (a) MBT within 2 deg of the truth's in MBT-limited cells, (b) torque at the table within 1 % of the truth's
@@ -27,11 +27,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, doe, learning, simulate
-from engine_model.burnlaw import BurnLaw
-from engine_model.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, LoadTable, build_load_table
-from engine_model.mapmodel import MapModel
-from engine_model.maps import EcuGrid, build_maps
+from engine_model import SolverSettings, default_spec
+
+from engine_model import doe
+from engine_model import priors
+
+from engine_model.globalmodel import learning
+
+from engine_model.sim import simulate
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.globalmodel.load_table import DEFAULT_SPEED_RPM, DEFAULT_THROTTLE_PCT, LoadTable, build_load_table
+from engine_model.globalmodel.mapmodel import MapModel
+from engine_model.tables import EcuGrid, build_maps
 
 SOLVER = SolverSettings(step_deg=1.0)
 GRID = EcuGrid((30.0, 100.0), (7000.0, 12000.0))
@@ -40,7 +47,7 @@ GRID = EcuGrid((30.0, 100.0), (7000.0, 12000.0))
 def data_points(spark_hi: float = 5.0):
     pts = doe.latin_hypercube(48, bounds={"spark_deg_btdc": (-20.0, spark_hi), "speed_rpm": (5000.0, 13000.0),
                                           "throttle_pct": (20.0, 100.0)}, seed=7)
-    pts = learning._absolute_spark(pts)
+    pts = learning.absolute_spark(pts)
     pts["point_id"] = [f"lhs{i}" for i in range(len(pts))]
     return pts
 
@@ -110,7 +117,7 @@ def main():
     a.cache.mkdir(parents=True, exist_ok=True)
     spec, law = default_spec(), BurnLaw()
     table = load_table(spec, a.cache)
-    lam = {(t, n): float(doe.lambda_target(t)) for t in GRID.throttle_pct for n in GRID.speed_rpm}
+    lam = {(t, n): float(priors.lambda_target(t)) for t in GRID.throttle_pct for n in GRID.speed_rpm}
     sweeps = truth_sweeps(spec, law, lam, a.cache)
     pts = data_points(a.spark_hi)
     rows = []

@@ -27,11 +27,14 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="CSV with one row per trial")
     args = ap.parse_args(argv)
 
-    from engine_model import default_spec, simulate
-    from engine_model.burnlaw import BurnLaw
+    from engine_model import default_spec
+
+    from engine_model.sim import simulate
+    from engine_model.bench.burnlaw import BurnLaw
     from engine_model.gap import EFFECTS, best_pair, calibrate_base, choose_base, diagnose, get_effect, linearise
-    from engine_model.gap.benchmark import BENCH_SOLVER, benchmark_plan, measure_with_backoff
-    from engine_model.virtual_bench import NoiseModel, VirtualBench, apply_noise
+    from engine_model.gap.bench_procedure import BENCH_SOLVER, measure_with_backoff
+    from engine_model.gap.benchmark import benchmark_plan
+    from engine_model.bench.virtual import NoiseModel, VirtualBench, apply_noise
 
     t0 = time.perf_counter()
     spec = default_spec()

@@ -27,11 +27,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import doe, wiebe
-from engine_model.burnlaw import BurnLaw
-from engine_model.identify import identification_plan
-from engine_model.identify_sweep import choose_operating_points, identify_sweeps, sweep_plan
-from engine_model.virtual_bench import VirtualBench
+from engine_model import wiebe
+
+from engine_model import doe
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.calibration.identify import identification_plan
+from engine_model.calibration.sweeps import choose_operating_points, identify_sweeps, sweep_plan
+from engine_model.bench.virtual import VirtualBench
 
 OFFSETS_B = (-15.0, -10.0, -5.0, 0.0, 5.0, 10.0, 15.0)
 A_MAX_OFFSET = 5.0

@@ -19,8 +19,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model.maps import EcuGrid, MapSettings, build_maps, load_model
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model.tables import EcuGrid, MapSettings, build_maps, load_model
 
 SOLVER = SolverSettings(step_deg=0.5)
 KEY = ("throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m")

@@ -23,10 +23,10 @@ from pathlib import Path
 import pandas as pd
 
 from engine_model import io
-from engine_model import learning as L
-from engine_model.burnlaw import BurnLaw
+from engine_model.globalmodel import learning as L
+from engine_model.bench.burnlaw import BurnLaw
 from engine_model.doe import QUICK_SOLVER
-from engine_model.virtual_bench import NoiseModel, VirtualBench
+from engine_model.bench.virtual import NoiseModel, VirtualBench
 
 SIGMA_B, SIGMA_M = 1.5, 0.4
 TARGET = {"bdur_10_90_deg": 1.0, "wiebe_m": 0.3}

@@ -1,7 +1,7 @@
 """Judge the spark tables of finished ``mbc run`` folders with the virtual bench's hidden law.
 
 For the run's calibrated engine (airflow parameters from ``<run>/manifest.json``) the table builder is run once
-with the truth law (:class:`engine_model.burnlaw.BurnLaw`) as the combustion model on the same default ECU grid
+with the truth law (:class:`engine_model.bench.burnlaw.BurnLaw`) as the combustion model on the same default ECU grid
 and solver step (0.5 deg): the truth's own table.  Then, for each run, the truth engine is simulated at the run's
 table spark in every cell both call feasible, and compared with the truth's table cell: torque ratio, knock
 index, spark difference (all cells; and the cells the truth table calls MBT-limited).
@@ -19,9 +19,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model import SolverSettings, default_spec, simulate
-from engine_model.burnlaw import BurnLaw
-from engine_model.maps import EcuGrid, build_maps
+from engine_model import SolverSettings, default_spec
+
+from engine_model.sim import simulate
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.tables import EcuGrid, build_maps
 
 SOLVER = SolverSettings(step_deg=0.5)
 

@@ -20,9 +20,9 @@ import numpy as np
 import pandas as pd
 
 from engine_model import default_spec
-from engine_model.burnlaw import BurnLaw
-from engine_model.load_table import build_load_table
-from engine_model.mapmodel import ca50_offset_deg, fit_map_model
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.globalmodel.load_table import build_load_table
+from engine_model.globalmodel.mapmodel import ca50_offset_deg, fit_map_model
 
 VARIANTS = {
     "default": {},

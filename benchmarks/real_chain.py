@@ -15,11 +15,11 @@ import time
 import numpy as np
 import pandas as pd
 
-from engine_model import learning as L
+from engine_model.globalmodel import learning as L
 from engine_model.bench import VirtualBench
-from engine_model.burnlaw import BurnLaw
+from engine_model.bench.burnlaw import BurnLaw
 from engine_model.doe import QUICK_SOLVER
-from engine_model.mapmodel import MapModel
+from engine_model.globalmodel.mapmodel import MapModel
 
 
 def main(n=16, seed=0):

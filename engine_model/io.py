@@ -1,7 +1,8 @@
 """Atomic file output: write to a temporary file in the target folder, then rename.
 
 A reader never sees a half-written file, and an interrupted run leaves either
-the old file or none.
+the old file or none.  Files get the permissions the user's umask gives a new
+file (0644 under the usual umask 022), not the private 0600 of a temporary file.
 """
 
 from __future__ import annotations
@@ -14,13 +15,28 @@ from pathlib import Path
 import pandas as pd
 
 
-def _atomic(path: Path, write) -> Path:
+def _current_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+#: The process umask at import (reading it means setting it, which is not thread-safe, so it is read once).
+_UMASK = _current_umask()
+
+
+def atomic_write(path: Path, write) -> Path:
+    """Call ``write(tmp_path)`` on a temporary file next to ``path``, then rename it onto ``path``.
+
+    The file gets mode ``0666 & ~umask``; on any failure the temporary file is removed and ``path`` is untouched.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -31,17 +47,17 @@ def _atomic(path: Path, write) -> Path:
 
 def write_parquet(df: pd.DataFrame, path) -> Path:
     """Write a DataFrame to Parquet (pyarrow) atomically."""
-    return _atomic(path, lambda tmp: df.to_parquet(tmp, engine="pyarrow", index=False))
+    return atomic_write(path, lambda tmp: df.to_parquet(tmp, engine="pyarrow", index=False))
 
 
 def write_csv(df: pd.DataFrame, path, **kwargs) -> Path:
     """Write a DataFrame to CSV atomically."""
-    return _atomic(path, lambda tmp: df.to_csv(tmp, index=False, **kwargs))
+    return atomic_write(path, lambda tmp: df.to_csv(tmp, index=False, **kwargs))
 
 
 def write_text(text: str, path) -> Path:
     """Write text atomically."""
-    return _atomic(path, lambda tmp: Path(tmp).write_text(text))
+    return atomic_write(path, lambda tmp: Path(tmp).write_text(text))
 
 
 def write_json(obj, path) -> Path:

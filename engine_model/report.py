@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .prepare import OperatingPoint, SolverSettings
-from .simulate import simulate_point
+from engine_model.sim.prepare import OperatingPoint, SolverSettings
+from engine_model.sim.simulate import simulate_point
 
 
 def comparison_table(bench: pd.DataFrame, sim: pd.DataFrame, eta_trans: float) -> pd.DataFrame:
@@ -56,11 +56,14 @@ def plot_comparison(cmp_: pd.DataFrame, path: Path, eta_trans: float) -> None:
 
 
 def plot_traces(spec, bench_row, bdur_10_90: float, wiebe_m: float, solver: SolverSettings, path: Path) -> None:
-    """Cylinder and manifold pressures over the converged cycle at one bench point."""
+    """Pressures over the converged cycle at one bench point: cylinders, manifold volumes, and the waves in intake
+    runner 1 and exhaust primary 1 (1D: pipe cells; lumped: the ports), with cylinder 1's valve events shaded."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
+
+    from engine_model.cycle.flow import valve_lift
 
     op = OperatingPoint(float(bench_row["speed_rpm"]), float(bench_row["throttle_pct"]),
                         float(bench_row["spark_deg_btdc"]), float(bench_row["lambda"]),
@@ -68,21 +71,37 @@ def plot_traces(spec, bench_row, bdur_10_90: float, wiebe_m: float, solver: Solv
     row, _, tr = simulate_point(spec, op, solver, return_traces=True)
     ncyl = spec.geometry.n_cylinders
     ang = np.arange(tr.shape[1]) * 720.0 / tr.shape[1]
-    fig, ax = plt.subplots(1, 2, figsize=(13, 4))
+    one_d = spec.gas_exchange.model == "1d"
+    fig, ax = plt.subplots(1, 3, figsize=(17, 4.2))
     for k in range(ncyl):
         ax[0].plot(ang, tr[k] / 1e5, lw=1, label=f"cylinder {k + 1}")
     ax[0].set_ylabel("cylinder pressure [bar]")
     ax[1].plot(ang, tr[2 * ncyl] / 1e5, label="plenum")
     ax[1].plot(ang, tr[2 * ncyl + 3] / 1e5, label="intake port 1")
     ax[1].plot(ang, tr[2 * ncyl + 4] / 1e5, label="exhaust port 1")
-    ax[1].plot(ang, tr[2 * ncyl + 1] / 1e5, label="collector")
+    ax[1].plot(ang, tr[2 * ncyl + 1] / 1e5, label="exhaust merge" if one_d else "collector")
     ax[1].set_ylabel("pressure [bar]")
+    ax[1].set_ylim(top=min(ax[1].get_ylim()[1], 3.0))
+    if one_d:
+        names = ("intake runner 1, middle", "intake runner 1, port end", "exhaust primary 1, port end",
+                 "exhaust primary 1, middle")
+        for r, name in enumerate(names):
+            ax[2].plot(ang, tr[2 * ncyl + 5 + r] / 1e5, lw=1, label=name)
+        ax[2].set_title("pressure waves in the pipes of cylinder 1", fontsize=9)
+    else:
+        ax[2].plot(ang, tr[2 * ncyl + 3] / 1e5, label="intake port 1 (lumped runners)")
+        ax[2].plot(ang, tr[2 * ncyl + 4] / 1e5, label="exhaust port 1 (lumped runners)")
+    ax[2].set_ylabel("pressure [bar]")
+    for valves, colour in ((spec.intake_valves, "tab:blue"), (spec.exhaust_valves, "tab:red")):
+        is_open = valve_lift(ang, valves) > 0.0
+        ax[2].fill_between(ang, 0, 1, where=is_open, color=colour, alpha=0.08, transform=ax[2].get_xaxis_transform(),
+                           label=f"{'intake' if valves is spec.intake_valves else 'exhaust'} valve 1 open")
     for a in ax:
         a.set_xlabel("crank angle of cylinder 1 [deg], 0 = firing TDC")
         a.grid(alpha=0.3)
-        a.legend(fontsize=8)
-    fig.suptitle(f"{op.speed_rpm:.0f} rpm WOT, spark {op.spark_deg_btdc:g} deg BTDC: pmax {row['pmax_bar']:.0f} bar "
-                 f"at {row['pmax_deg_atdc']:.0f} deg ATDC, VE {row['vol_eff']:.2f}")
+        a.legend(fontsize=7)
+    fig.suptitle(f"{op.speed_rpm:.0f} rpm, throttle {op.throttle_pct:g} %, spark {op.spark_deg_btdc:g} deg BTDC: "
+                 f"pmax {row['pmax_bar']:.0f} bar at {row['pmax_deg_atdc']:.0f} deg ATDC, VE {row['vol_eff']:.2f}")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -135,7 +154,7 @@ def write_report(folder, name: str, title: str, sections: list) -> tuple[Path, P
     """
     import html
 
-    from .io import write_text
+    from engine_model.io import write_text
 
     folder = Path(folder)
     md = [f"# {title}", ""]
@@ -190,7 +209,7 @@ def write_index(folder, title: str, summary: list[tuple[str, str]], sections: li
     """
     import html
 
-    from .io import write_text
+    from engine_model.io import write_text
 
     folder = Path(folder)
     esc = html.escape

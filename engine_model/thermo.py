@@ -85,12 +85,12 @@ def _molar_mass(species: str) -> float:
     return 1e-3 * sum(n * _ATOM[e] for e, n in _ELEMENTS[species].items())
 
 
-def _poly_h(a, T):
+def poly_h(a, T):
     """h/R [K] of one NASA range ``a`` (length 7) at T [K]."""
     return T * (a[0] + T * (a[1] / 2 + T * (a[2] / 3 + T * (a[3] / 4 + T * a[4] / 5)))) + a[5]
 
 
-def _poly_s(a, T):
+def poly_s(a, T):
     """Dimensionless s0/R of one NASA range ``a``."""
     return a[0] * math.log(T) + T * (a[1] + T * (a[2] / 2 + T * (a[3] / 3 + T * a[4] / 4))) + a[6]
 
@@ -102,12 +102,13 @@ def _make_continuous(low, high) -> np.ndarray:
     the Newton inversion of u(T) from hunting across a step.
     """
     a = np.array([low, high], dtype=float)
-    a[1, 5] += _poly_h(a[0], T_MID) - _poly_h(a[1], T_MID)
-    a[1, 6] += _poly_s(a[0], T_MID) - _poly_s(a[1], T_MID)
+    a[1, 5] += poly_h(a[0], T_MID) - poly_h(a[1], T_MID)
+    a[1, 6] += poly_s(a[0], T_MID) - poly_s(a[1], T_MID)
     return a
 
 
-_SPECIES_A = {k: _make_continuous(*v) for k, v in _NASA.items()}
+#: NASA 7-coefficient blocks per species, made continuous at T_MID (dimensionless, cp/R ...).
+SPECIES_NASA = {k: _make_continuous(*v) for k, v in _NASA.items()}
 
 
 def _refit_isooctane() -> np.ndarray:
@@ -140,14 +141,14 @@ _ISOOCTANE_A = _refit_isooctane()
 def _mass_coeffs(moles: dict[str, float]) -> tuple[np.ndarray, float, float]:
     """Mass-based (2,7) coefficients, R [J/(kg K)] and mass [kg] of a species mixture given in moles."""
     mass = sum(n * _molar_mass(s) for s, n in moles.items())
-    a = sum(n * _SPECIES_A[s] for s, n in moles.items())
+    a = sum(n * SPECIES_NASA[s] for s, n in moles.items())
     ntot = sum(moles.values())
     return R_UNIVERSAL * a / mass, R_UNIVERSAL * ntot / mass, mass
 
 
 def _h_np(c, T):
     """h [J/kg] of a (2,7) mass-based block, plain Python."""
-    return _poly_h(c[0] if T < T_MID else c[1], T)
+    return poly_h(c[0] if T < T_MID else c[1], T)
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import sys
 import time
 from pathlib import Path
 
-from engine_model import __version__
+from engine_model.version import package_version
 
 
 def _progress(label: str):
@@ -41,7 +41,8 @@ def _progress(label: str):
 
 
 def cmd_simulate(args) -> int:
-    from engine_model import SolverSettings, load_spec, simulate
+    from engine_model import SolverSettings, load_spec
+    from engine_model.sim import simulate
     from engine_model.io import read_table, write_parquet
 
     spec = load_spec(args.spec)
@@ -57,12 +58,12 @@ def cmd_simulate(args) -> int:
 def cmd_sweep(args) -> int:
     from engine_model.io import read_table
 
-    from .sweep import run_sweep
-    from .store import frame_hash
+    from flows.sweep import run_sweep
+    from flows.store import frame_hash
 
     out = args.out
     if out is None:
-        from .run import default_run_dir
+        from flows.run import default_run_dir
 
         out = default_run_dir(frame_hash(read_table(args.plan)))
     t0 = time.perf_counter()
@@ -81,7 +82,8 @@ def cmd_sweep(args) -> int:
 def cmd_run(args) -> int:
     import dataclasses
 
-    from .run import QUICK, STAGES, RunSettings, run_pipeline
+    from flows.run import run_pipeline
+    from flows.settings import QUICK, RunSettings, parse_stages
 
     base = QUICK if args.quick else RunSettings()
     changes = {"eta_trans": args.eta_trans}
@@ -90,10 +92,7 @@ def cmd_run(args) -> int:
     if args.doe_points is not None:
         changes["doe_points"] = args.doe_points
     if args.stages:
-        changes["stages"] = tuple(s.strip() for s in args.stages.split(",") if s.strip())
-        bad = [s for s in changes["stages"] if s not in STAGES]
-        if bad:
-            raise ValueError(f"--stages: unknown stage(s) {bad}; known: {','.join(STAGES)}")
+        changes["stages"] = parse_stages(args.stages)
     for name in ("throttle", "speed"):
         if getattr(args, name) is not None:
             changes[f"map_{name}"] = getattr(args, name)
@@ -103,7 +102,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_calibrate(args) -> int:
-    from .calibrate import run_calibration
+    from flows.stages.calibration import run_calibration
 
     grid = tuple(int(v) for v in args.airflow_grid.split("x"))
     run_calibration(out=args.out, bench=args.bench, spec=args.spec, eta_trans=args.eta_trans,
@@ -114,7 +113,7 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_maps(args) -> int:
-    from .maps import run_maps
+    from flows.stages.maps import run_maps
 
     settings = {k: v for k, v in (("knock_margin", args.knock_margin), ("safety_retard_deg", args.safety_retard),
                                   ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v),
@@ -127,14 +126,14 @@ def cmd_maps(args) -> int:
 
 
 def cmd_plan(args) -> int:
-    from .plan import plan_from_args
+    from flows.plan import plan_from_args
 
     plan_from_args(args)
     return 0
 
 
 def cmd_serve(args) -> int:
-    from .deploy import serve_deployments
+    from flows.deploy import serve_deployments
 
     serve_deployments(watch=args.watch, cron=args.cron, interval_s=args.interval, workers=args.workers,
                       dask_address=args.dask_address, results=args.results)
@@ -142,7 +141,7 @@ def cmd_serve(args) -> int:
 
 
 def cmd_gap(args) -> int:
-    from .gap import run_gap
+    from flows.stages.gap import run_gap
 
     overrides = {}
     for item in args.override or []:
@@ -159,21 +158,20 @@ def cmd_gap(args) -> int:
 
 
 def cmd_gap_benchmark(args) -> int:
-    from .gap import run_gap_benchmark
+    from flows.stages.gap import run_gap_benchmark
 
     run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
-                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design,
-                      error_model=args.error_model, speed_curvature=args.speed_curvature)
+                      dask_address=args.dask_address, seed_start=args.seed_start, design=args.design)
     return 0
 
 
 def cmd_gap_plan(args) -> int:
     """Propose the bench points that tell the library's effects apart (base model only, in-process)."""
-    from engine_model.gap.benchmark import BENCH_SOLVER
+    from engine_model.gap.bench_procedure import BENCH_SOLVER
     from engine_model import load_spec
     from engine_model.gap.design import discrimination_plan
     from engine_model.io import write_csv
-    from engine_model.simulate import simulate
+    from engine_model.sim.simulate import simulate
 
     if args.points < 2:
         raise ValueError(f"--points {args.points}: need at least 2 bench points")
@@ -190,7 +188,7 @@ def cmd_gap_plan(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbc", description="Model-based calibration of a restricted race engine")
-    p.add_argument("--version", action="version", version=f"mbc {__version__}")
+    p.add_argument("--version", action="version", version=f"mbc {package_version()}")
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp):
@@ -225,7 +223,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--doe-points", type=int, default=None, help="operating points (spark sweeps) on the virtual bench (default 10)")
     r.add_argument("--throttle", default=None, help="ECU throttle breakpoints [%%] ('0,5,10' or 'start:stop:step')")
     r.add_argument("--speed", default=None, help="ECU speed breakpoints [rpm] (default 1000:13000:1000)")
-    r.add_argument("--stages", default=None, help="comma list of calibration,virtual_bench,model,maps,gap (default all)")
+    r.add_argument("--stages", default=None, help="comma list of calibration,model,maps,gap (default all); a stage "
+                   "left out is taken from --out, which must then hold a run that has it")
     r.add_argument("--quick", action="store_true", help="small smoke run: 1 deg step, coarse searches, 3 x 3 tables")
     r.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     r.add_argument("--step-deg", type=float, default=None, help="crank-angle step [deg] (default 0.5; --quick 1)")
@@ -264,7 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     dask(mp)
     mp.set_defaults(func=cmd_maps)
 
-    from .plan import add_plan_arguments
+    from flows.plan import add_plan_arguments
 
     pl = sub.add_parser("plan", help="generate a DOE test plan (Parquet + CSV + metadata)")
     add_plan_arguments(pl)
@@ -292,16 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
     gb.add_argument("--seeds", type=int, default=3, help="noise seeds per case (default 3)")
     gb.add_argument("--seed-start", type=int, default=0,
                     help="first noise seed (default 0); e.g. 5 for fresh seeds after tuning on 0-4")
-    gb.add_argument("--design", choices=("sobol", "sweep", "discriminating"), default="discriminating",
+    gb.add_argument("--design", choices=("discriminating", "sobol"), default="discriminating",
                     help="benchmark DOE: 32 points chosen from a candidate pool to tell the effects apart "
-                         "(default, as mbc gap-plan), 32 scattered Sobol' points, or 8 operating points x "
-                         "4-spark sweeps")
-    gb.add_argument("--error-model", choices=("diagonal", "burn_scatter"), default=None,
-                    help="structural error model of the diagnosis: per-point burn scatter correlated across a "
-                         "point's readings (GLS; the library's default), or per reading in quadrature")
-    gb.add_argument("--no-speed-curvature", dest="speed_curvature", action="store_false",
-                    help="do not let the base calibration carry a speed curvature of the burn duration (it is used "
-                         "by default where the plan has >= 24 operating points over >= 5000 rpm)")
+                         "(default, as mbc gap-plan), or 32 scattered Sobol' points (cheaper to plan)")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)

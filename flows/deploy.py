@@ -22,9 +22,9 @@ import json
 import os
 from pathlib import Path
 
-from . import prefect_env  # noqa: F401
-from .run import run_flow
-from .sweep import sweep_flow
+from flows import prefect_env  # noqa: F401
+from flows.run import run_flow
+from flows.sweep import sweep_flow
 
 from prefect import flow  # noqa: E402
 
@@ -63,7 +63,7 @@ def watch_flow(watch: str = "bench_inbox", results: str = "results", quick: bool
 
     ``quick``: the small settings of ``mbc run --quick`` (1 deg step, coarse searches).
     """
-    from .run import QUICK, settings_to_dict
+    from flows.settings import QUICK, settings_to_dict
 
     settings = {**(settings_to_dict(QUICK) if quick else {}), "stages": ["calibration"]}
     wdir = Path(watch)

@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from .store import read_results
-from .sweep import DEFAULT_WORKERS, dask_runner, sweep_flow
+from flows.store import read_results
+from flows.sweep import DEFAULT_WORKERS, dask_runner, sweep_flow
 
 from engine_model.io import write_parquet  # noqa: E402
 
@@ -44,23 +44,17 @@ class SweepEvaluator:
     address : str
         Dask scheduler address (see :func:`shared_cluster`).
     spec : str, optional
-        Engine spec TOML path (None: embedded default).
+        Engine spec TOML path (None: embedded default); a run's calibrated engine is its ``engine.toml``.
     step_deg, tolerance : float
         Solver settings [deg], [-].
     label : str
         Folder prefix of the batches.
     progress : bool
         Progress bar per batch.
-    overrides : dict, optional
-        Spec values ``{"<section>.<field>": value}`` applied to every row (as
-        ``spec.<section>.<field>`` plan columns, see :func:`engine_model.simulate`),
-        e.g. the airflow-matched parameters of a calibration; columns a plan
-        already has win.
     """
 
     def __init__(self, root, address: str, spec: str | None = None, step_deg: float = 0.5,
-                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True,
-                 overrides: dict | None = None):
+                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True):
         self.root = Path(root)
         self.address = address
         self.spec = spec
@@ -68,7 +62,6 @@ class SweepEvaluator:
         self.tolerance = tolerance
         self.label = label
         self.progress = progress
-        self.overrides = dict(overrides or {})
         self.calls = 0
         self.points = 0
 
@@ -77,10 +70,6 @@ class SweepEvaluator:
         self.calls += 1
         self.points += len(plan)
         plan = plan.reset_index(drop=True)
-        for key, val in self.overrides.items():
-            col = key if key.startswith("spec.") else f"spec.{key}"
-            if col not in plan.columns:
-                plan[col] = val
         if "point_id" not in plan.columns:
             plan = plan.assign(point_id=[f"q{i:06d}" for i in range(len(plan))])
         src = write_parquet(plan, out / "plan_input.parquet")

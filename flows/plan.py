@@ -11,11 +11,14 @@ import argparse
 
 import numpy as np
 
-from . import prefect_env
+from flows import prefect_env
 
 from prefect import flow  # noqa: E402
 
-from engine_model import doe, load_spec  # noqa: E402
+from engine_model import load_spec  # noqa: E402
+
+from engine_model import doe
+from engine_model import priors
 
 KINDS = ("full-factorial", "lhs", "sobol", "d-optimal", "spark-sweep")
 DEFAULT_SPEEDS = "3000:13000:1000"
@@ -84,7 +87,7 @@ def plan_flow(kind: str, name: str, out_dir: str = "doe_plans", n: int = 64, see
         plan = doe.feasibility(plan, spec=eng, drop=feasibility == "drop")
         meta["feasibility"] = feasibility
     plan = doe.bench_order(plan)
-    plan = doe.with_combustion(plan)
+    plan = priors.with_combustion(plan)
     if wiebe_grid:
         plan = doe.wiebe_grid(plan)
         meta["wiebe_grid"] = True

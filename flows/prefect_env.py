@@ -2,7 +2,7 @@
 
 Prefect's ephemeral mode starts a temporary API server in each process that
 needs one; Dask worker processes would each start their own (~7 s each, one
-SQLite file; shared/STACK-NOTES.md, trap 1).  ``prefect_api()`` therefore
+SQLite file; docs/stack.md, "One API per run").  ``prefect_api()`` therefore
 starts a single local server for the run when no ``PREFECT_API_URL`` is
 configured, points this process at it, and exports the address so that
 processes started afterwards (the local Dask cluster's workers) inherit it.

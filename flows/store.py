@@ -31,7 +31,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from engine_model import RESULT_COLUMNS
-from engine_model.io import _atomic
+from engine_model.io import atomic_write
 
 PART_META_KEY = b"mbc_chunk"
 PART_GLOB = "part-*.parquet"
@@ -139,7 +139,7 @@ def write_part(df: pd.DataFrame, path: Path, schema: pa.Schema, meta: dict) -> P
                                 from_pandas=True)
     table = pa.table(cols, schema=schema)
     table = table.replace_schema_metadata({PART_META_KEY: json.dumps(meta, sort_keys=True).encode()})
-    return _atomic(path, lambda tmp: pq.write_table(table, tmp))
+    return atomic_write(path, lambda tmp: pq.write_table(table, tmp))
 
 
 def read_part_meta(path: Path) -> dict | None:

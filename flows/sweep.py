@@ -5,7 +5,7 @@
 * Chunks are consecutive rows of the plan (the simulator reuses the converged
   state between consecutive rows of one operating condition, so a Wiebe grid
   keeps its points together), sized so that a Dask task runs a few seconds
-  (Prefect's per-task overhead is ~0.1 s; shared/STACK-NOTES.md, trap 2).
+  (Prefect's per-task overhead is ~0.1 s; docs/stack.md).
 * The driver (this flow) writes each part atomically as soon as its chunk
   finishes; workers only compute and return a small DataFrame, so no shared
   file system is needed between the driver and a remote cluster.
@@ -19,7 +19,7 @@
   flow ends Failed so that a re-run computes it.
 * The task calls ``engine_model.simulate`` from the installed package, which
   reaches the numba kernels through their module, so workers load compiled
-  kernels from numba's on-disk cache instead of recompiling (STACK-NOTES, trap 3).
+  kernels from numba's on-disk cache instead of recompiling (docs/stack.md).
 """
 
 from __future__ import annotations
@@ -35,16 +35,17 @@ from pathlib import Path
 
 import pandas as pd
 
-from . import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
-from . import store
+from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
+from flows import store
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
 from distributed import as_completed as dask_as_completed  # noqa: E402
 
-from engine_model import SolverSettings, __version__, load_spec  # noqa: E402
-from engine_model.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
+from engine_model import SolverSettings, load_spec  # noqa: E402
+from engine_model.version import package_version  # noqa: E402
+from engine_model.sim.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
 from engine_model.doe import validate_plan  # noqa: E402
 from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 
@@ -155,7 +156,7 @@ class Progress:
 
 def _manifest_base(spec, spec_path, plan_hash, solver, chunk_size, n_points, n_chunks) -> dict:
     return {
-        "kind": "sweep", "package_version": __version__, "engine": spec.name, "spec": spec_path or "embedded",
+        "kind": "sweep", "package_version": package_version(), "engine": spec.name, "spec": spec_path or "embedded",
         "spec_hash": spec.spec_hash(), "plan_hash": plan_hash, "solver": solver.__dict__,
         "solver_hash": store.solver_hash(solver), "chunk_size": chunk_size, "points": n_points,
         "chunks": n_chunks,
@@ -252,27 +253,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
     write_json({**base, "status": "running", "started": started}, man_path)
 
     schema = store.result_schema(pts)
-    shash, solh = eng.spec_hash(), store.solver_hash(solver)
-    todo, skipped = [], 0
-    counts = {"points": 0, "ok": 0, "not_converged": 0, "failed": 0}   # summed per part: no dataset read
-    for stale in sweep_dir.glob(store.PART_GLOB):   # parts of another chunking (e.g. an older version)
-        try:
-            index = int(stale.stem.split("-")[1])
-        except (IndexError, ValueError):
-            continue
-        if index >= len(bounds):
-            stale.unlink()
-    for c, (a, b) in enumerate(bounds):
-        key = store.chunk_key(pts.iloc[a:b], shash, solh)
-        path = store.part_path(sweep_dir, c)
-        if path.exists():
-            meta = store.read_part_meta(path)
-            if meta is not None and meta.get("key") == key:
-                skipped += 1
-                _add_counts(counts, store.summarize(pd.read_parquet(path, columns=["status"])))
-                continue
-            path.unlink()   # stale or torn: recompute
-        todo.append((c, a, b, key))
+    todo, skipped, counts = _resume_state(sweep_dir, pts, bounds, eng.spec_hash(), store.solver_hash(solver))
     bar = Progress(len(todo), sum(b - a for _, a, b, _ in todo), enabled=progress)
     if progress and skipped:
         print(f"resuming: {skipped} of {len(bounds)} chunks already done", file=sys.stderr)
@@ -340,6 +321,35 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         raise RuntimeError(f"{len(failed)} chunk(s) failed after retries ({sorted(failed)}); their points are "
                            f"listed as missing in {man_path}; run the same command again to compute them")
     return man
+
+
+def _resume_state(sweep_dir: Path, pts: pd.DataFrame, bounds: list, spec_hash: str, solver_h: str):
+    """Chunks still to compute ``[(chunk, first_row, end_row, key)]``, chunks already on disk, their counts.
+
+    A part on disk counts as done only when its stored key matches the chunk's inputs (spec, solver,
+    points); stale or torn parts, and parts of another chunking, are removed.
+    """
+    todo, skipped = [], 0
+    counts = {"points": 0, "ok": 0, "not_converged": 0, "failed": 0}   # summed per part: no dataset read
+    for stale in sweep_dir.glob(store.PART_GLOB):   # parts of another chunking (e.g. an older version)
+        try:
+            index = int(stale.stem.split("-")[1])
+        except (IndexError, ValueError):
+            continue
+        if index >= len(bounds):
+            stale.unlink()
+    for c, (a, b) in enumerate(bounds):
+        key = store.chunk_key(pts.iloc[a:b], spec_hash, solver_h)
+        path = store.part_path(sweep_dir, c)
+        if path.exists():
+            meta = store.read_part_meta(path)
+            if meta is not None and meta.get("key") == key:
+                skipped += 1
+                _add_counts(counts, store.summarize(pd.read_parquet(path, columns=["status"])))
+                continue
+            path.unlink()   # stale or torn: recompute
+        todo.append((c, a, b, key))
+    return todo, skipped, counts
 
 
 def _add_counts(total: dict, part: dict) -> None:

@@ -1,9 +1,13 @@
-"""Shared fixtures.
+"""Shared fixtures, and the test tiers.
+
+Tiers: ``make test-fast`` runs ``-m "not slow and not integration"`` (physics, numerics, contracts; no
+Prefect server, no Dask cluster; under 2 minutes); ``make test`` runs everything.  Every test under
+``tests/flows/`` is marked ``integration`` here (real Prefect, real Dask, ``mbc`` subprocesses).
 
 ``prefect_api``: one real Prefect API server (Prefect's test harness: a
 uvicorn subprocess on a temporary database) for the whole test session,
 exported through ``PREFECT_API_URL`` so that Dask worker processes and ``mbc``
-subprocesses started by a test talk to the same server (shared/STACK-NOTES.md).
+subprocesses started by a test talk to the same server (docs/stack.md).
 """
 
 from __future__ import annotations
@@ -13,6 +17,13 @@ import socket
 
 import pandas as pd
 import pytest
+
+
+def pytest_collection_modifyitems(config, items):
+    flows_dir = os.path.join(os.path.dirname(__file__), "flows") + os.sep
+    for item in items:
+        if str(item.fspath).startswith(flows_dir):
+            item.add_marker(pytest.mark.integration)
 
 
 @pytest.fixture(scope="session")

@@ -95,8 +95,8 @@ def test_water_gas_constant_is_plausible_freeze_point():
     # K = 3.5 should be the GRI-Mech 3.0 equilibrium constant of CO2 + H2 <-> CO + H2O somewhere in
     # 1650-1800 K, the range where the shift reaction freezes during expansion (Heywood 1988 sec 4.9.1).
     def g(species, T):
-        a = th._SPECIES_A[species][0 if T < th.T_MID else 1]
-        return th.R_UNIVERSAL * (th._poly_h(a, T) - T * th._poly_s(a, T))
+        a = th.SPECIES_NASA[species][0 if T < th.T_MID else 1]
+        return th.R_UNIVERSAL * (th.poly_h(a, T) - T * th.poly_s(a, T))
 
     def k_eq(T):
         return math.exp(-(g("CO", T) + g("H2O", T) - g("CO2", T) - g("H2", T)) / (th.R_UNIVERSAL * T))

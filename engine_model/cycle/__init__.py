@@ -3,7 +3,7 @@
 Rule of this package: pure ``@njit(cache=True)`` functions over float64 scalars
 and arrays, SI units, no I/O, no pandas, no logging.  The Python face that
 builds the arrays from an :class:`~engine_model.spec.EngineSpec` lives in
-:mod:`engine_model.prepare` and :mod:`engine_model.simulate`.
+:mod:`engine_model.sim.prepare` and :mod:`engine_model.simulate`.
 
 The one exception to "no I/O" is the cache guard below, which runs once at
 import, before any kernel is loaded.

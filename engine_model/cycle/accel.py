@@ -2,7 +2,7 @@
 
 The converged cycle is the fixed point x* = F(x*) of the map F that integrates
 one 720 deg cycle from the end-of-cycle state x (masses and energies of every
-volume, runner flows).  Near x* the iterates approach it along a few slowly
+volume, runner flows or pipe cells).  Near x* the iterates approach it along a few slowly
 decaying modes (ratios ~0.8-0.92 per cycle here: the burned-gas and fresh-mixture
 content of the plenum and ports, fed by backflow), so plain iteration needs
 20-50 cycles for 0.1 %.  MPE fits the last k+1 differences u_j = x_{j+1} - x_j
@@ -21,21 +21,22 @@ Kernels here are pure functions over float arrays (numba, no NRT).
 
 from numba import njit
 
-from .layout import FASTMATH, NVCOL, V_U
+from engine_model.cycle.layout import FASTMATH, NVCOL, V_U
 
 U_SCALE = 1.0e6   # [J/kg] specific-energy scale that makes energies comparable to mass fractions
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def state_weights(vol, mr, w, ncyl):
-    """Weights of the MPE fit: masses per volume mass, energies per (mass * U_SCALE), manifolds only.
+def state_weights(vol, mr, q, w, ncyl):
+    """Weights of the MPE fit: masses per volume (or cell) mass, energies per (mass * U_SCALE), manifolds only.
 
     The fit sees the volumes outside the cylinders (ports, plenum, throttle
-    body, collector, runner joints), where the slow modes live; cylinders
-    (caught mid-stroke at the cycle end) and runner flows (fast acoustic
-    modes) get weight 0 but are extrapolated with the same coefficients.
-    Tried on the 9000 rpm WOT point: this fits the slow plenum composition
-    better than weighting every state (fewer cycles for the same accuracy).
+    body, collector, runner joints) and the pipe cells, where the slow modes
+    live; cylinders (caught mid-stroke at the cycle end), runner flows and cell
+    momenta (fast acoustic modes) get weight 0 but are extrapolated with the
+    same coefficients.  Tried on the 9000 rpm WOT point of the lumped model:
+    this fits the slow plenum composition better than weighting every state
+    (fewer cycles for the same accuracy).
     """
     nvol = vol.shape[0]
     j = 0
@@ -50,11 +51,18 @@ def state_weights(vol, mr, w, ncyl):
     for i in range(mr.shape[0]):
         w[j] = 0.0
         j += 1
+    nq = q.shape[1]
+    for i in range(q.shape[0]):
+        m = q[i, 0] + q[i, 1] + q[i, 2]
+        inv = 1.0 / m if m > 0.0 else 0.0
+        for c in range(nq):
+            w[j] = inv if c < 3 else (inv / U_SCALE if c == nq - 1 else 0.0)
+            j += 1
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def pack_state(vol, mr, x):
-    """Copy the end-of-cycle state (vol[:, :NVCOL-1] row by row, then mr) into the vector x."""
+def pack_state(vol, mr, q, x):
+    """Copy the end-of-cycle state (vol[:, :NVCOL-1] row by row, then mr, then the pipe cells q) into x."""
     j = 0
     for i in range(vol.shape[0]):
         for c in range(NVCOL - 1):
@@ -63,10 +71,14 @@ def pack_state(vol, mr, x):
     for i in range(mr.shape[0]):
         x[j] = mr[i]
         j += 1
+    for i in range(q.shape[0]):
+        for c in range(q.shape[1]):
+            x[j] = q[i, c]
+            j += 1
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def unpack_state(x, vol, mr):
+def unpack_state(x, vol, mr, q):
     """Inverse of ``pack_state`` (the temperature column of vol is left as it is: a Newton start)."""
     j = 0
     for i in range(vol.shape[0]):
@@ -76,6 +88,10 @@ def unpack_state(x, vol, mr):
     for i in range(mr.shape[0]):
         mr[i] = x[j]
         j += 1
+    for i in range(q.shape[0]):
+        for c in range(q.shape[1]):
+            q[i, c] = x[j]
+            j += 1
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)

@@ -4,7 +4,7 @@ import math
 
 from numba import njit
 
-from .layout import FASTMATH
+from engine_model.cycle.layout import FASTMATH
 
 P_STD_PA = 101325.0  # 1 atm, the pressure unit of the Douaud-Eyzat correlation
 

@@ -1,34 +1,30 @@
 """Converged-cycle driver of the multi-cylinder engine (numba).
 
-The engine is a network of 0D volumes joined by flow elements:
+The engine is a network of 0D volumes joined by flow elements and, in the 1D gas exchange (the
+default), by pipes:
 
-    ambient -throttle-> throttle body -restrictor-> plenum =runner k=> intake port k
-    -intake valve k-> cylinder k -exhaust valve k-> exhaust port k =runner k=> collector
-    -tailpipe-> ambient
+    ambient -throttle-> throttle body -restrictor-> plenum =intake runner k=> intake port k
+    -intake valve k-> cylinder k -exhaust valve k-> exhaust port k =exhaust primary k=> merge
+    =collector=> silencer =tailpipe=> ambient                                      (1D, ``P_GASX`` = 1)
 
-``=runner=>`` elements carry a mass-flow state with a lumped momentum equation
-(gas inertia, so Helmholtz/ram tuning with speed exists) or, with inertia off,
-act as quasi-steady resistances.  Every volume holds the masses of three
-pseudo-species (air A, fresh mixture M = air + fuel vapour, products P) and its
-total internal energy including enthalpies of formation; temperature follows
-from that energy, so the heat released by combustion is the change of
-composition M -> P, not a separate source term.
+    ... exhaust port k =runner k=> collector -tailpipe orifice-> ambient           (lumped, ``P_GASX`` = 0)
 
-Integration: fixed crank-angle step, Heun's method (explicit trapezoidal RK2)
-on all states.  The orifice elements (throttle, restrictor, valves, tailpipe)
-are evaluated, in each Heun stage, linearly implicitly: every flow is
-linearised in the two pressures and solved together with the pressure changes
-of the volumes it joins over one step, including the known pressure rates
-from the piston, wall heat and runner flows (``network._solve_one`` and
-``_solve_two``, closed forms; the coupled groups are [throttle body, plenum],
-[intake port k, cylinder k, exhaust port k] and [collector]).  This is smooth (no explicit/implicit switch) and stays
-correct where the square-root law is stiff (nearly equal pressures, the small
-cylinder volume during valve overlap).  Quasi-steady runners (inertia off) use
-a single-element flow, implicit where stiff (``network._flow_between``).  Each
-flow leaves one volume and enters another with
-the same mass and enthalpy, so mass and energy are conserved by construction;
-the cycle-level balances reported in ``out`` therefore measure how periodic the
-converged cycle is.
+``=...=>`` are quasi-1D pipes (:mod:`.pipes`, advanced once per crank step by :func:`.pipenet.pipe_step`
+in Courant-limited sub-steps; their end fluxes enter the volumes as constant rates over the step) or, in
+the lumped option, runners with a lumped momentum equation (a mass-flow state per segment).  Every volume
+holds the masses of three pseudo-species (air A, fresh mixture M = air + fuel vapour, products P) and its
+total internal energy including enthalpies of formation; temperature follows from that energy, so the
+heat released by combustion is the change of composition M -> P, not a separate source term.
+
+Integration: fixed crank-angle step, Heun's method (explicit trapezoidal RK2) on the volume states (and
+the lumped runner flows).  The orifice elements (throttle, restrictor, valves, the lumped tailpipe) are
+evaluated, in each Heun stage, linearly implicitly: every flow is linearised in the two pressures and
+solved together with the pressure changes of the volumes it joins over one step, including the known
+pressure rates from the piston, wall heat, runner or pipe flows (``network.solve_one`` and
+``solve_two``, closed forms; the coupled groups are [throttle body, plenum], [intake port k, cylinder k,
+exhaust port k] and, lumped, [collector]).  Each flow leaves one volume or pipe end and enters another
+with the same mass and enthalpy, so mass and energy are conserved by construction; the cycle-level
+balances reported in ``out`` therefore measure how periodic the converged cycle is.
 """
 
 import math
@@ -36,14 +32,17 @@ import math
 import numpy as np
 from numba import njit
 
-from ..thermo import enthalpy_coeffs_into
-from .accel import mpe, pack_state, state_weights, unpack_state
-from .cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
-                       woschni_velocity)
-from .layout import *  # noqa: F401,F403  (index constants)
-from .network import _add_rate, _lin_between, _orifice_between, _solve_one, _solve_two
-from .volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
-from .volumes import _eval_props, _iv_transfer, _set_ambient, _transfer, _transfer_as
+from engine_model.thermo import enthalpy_coeffs_into
+from engine_model.cycle.accel import mpe, pack_state, state_weights, unpack_state
+from engine_model.cycle.cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
+                                         woschni_velocity)
+from engine_model.cycle.flow import gas_viscosity
+from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
+from engine_model.cycle.network import add_rate, lin_between, orifice_between, solve_one, solve_two
+from engine_model.cycle.pipenet import pipe_energy, pipe_step
+from engine_model.cycle.pipes import NF, NPM, NQ, NWK, PM_P, Q_A, Q_M, Q_P
+from engine_model.cycle.volumes import *  # noqa: F401,F403  (props columns, accumulator layout, volume kernels)
+from engine_model.cycle.volumes import eval_props, iv_transfer, set_ambient, transfer
 
 RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence estimate
 # [-] slowest cycle-to-cycle ratio assumed until an extrapolation has measured one:
@@ -51,183 +50,55 @@ RHO_MIN = 0.5    # [-] smallest contraction ratio assumed by the convergence est
 # (measured on 12 points, 250-cycle runs); a larger value only costs cycles.
 RHO_START = 0.92
 RHO_MAX = 0.97   # [-] ratios above this count as not contracting
-SLUG_EMPTY = 1e-12  # [-] a backflow slug below this share of its room counts as empty
-PHI_DT = 0.5        # [-] slug share of a forward draw m_s / (m_s + PHI_DT m dt)
+PRANDTL_PORT = 0.7  # [-] Prandtl number of the port gas for the Dittus-Boelter heat transfer (air, 300-1000 K)
 MBAL_SHARE = 0.25   # [-] the cycle's mass imbalance must be below this share of the tolerance (floor seen ~1.5e-4)
 
 
-def n_volumes(ncyl, nseg_in=1, nseg_ex=1):
+def n_volumes(ncyl, nseg_in=1, nseg_ex=1, pipes=False):
     """Number of gas volumes for ``ncyl`` cylinders.
 
-    Cylinders, 2 ports each, plenum, throttle body, collector, then the inner
-    joints of the segmented runners (``nseg - 1`` per runner; intake runners
-    first, runner by runner, then exhaust).
+    Cylinders, 2 ports each, plenum, throttle body, then the exhaust collector (lumped) or the merge
+    volume and the silencer (1D, ``pipes``); the lumped model adds the inner joints of segmented runners
+    (``nseg - 1`` per runner; intake runners first, runner by runner, then exhaust).
     """
+    if pipes:
+        return 3 * ncyl + 4
     return 3 * ncyl + 3 + ncyl * (nseg_in - 1) + ncyl * (nseg_ex - 1)
 
 
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _port_heat(ip, m, props, area, diam, t_wall, mult):
+    """Heat flow from the port wall into the port's gas [W]: Dittus-Boelter at the port's flow ``m`` [kg/s].
 
-@njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
-def _plenum_bulk(vol, mr, props, ipl, nflow, ncyl):
-    """Mass fractions and specific enthalpy [J/kg] of the plenum's bulk: the plenum node minus the slugs.
-
-    The slugs hold their gas at the enthalpy it came in with, so the bulk's
-    enthalpy is what the node's enthalpy leaves for it.  Falls back to the node's
-    own properties should the slugs ever hold more than three quarters of it.
+    h = 0.023 Re^0.8 Pr^0.4 k / D (Dittus and Boelter 1930, in Incropera et al., Fundamentals of Heat and
+    Mass Transfer, eq. 8.60), Re = 4 |m| / (pi D mu), k = mu cp / Pr; the gas properties at the port gas
+    temperature (Sutherland viscosity).  Fully developed turbulent pipe flow is a lower bound for a short,
+    curved port with a valve at its end, hence the multiplier in the spec.
     """
-    sa = 0.0
-    sm = 0.0
-    sp = 0.0
-    sh = 0.0
-    for k in range(ncyl):
-        b = nflow + NSLUG * k
-        sa += max(mr[b + SL_A], 0.0)
-        sm += max(mr[b + SL_M], 0.0)
-        sp += max(mr[b + SL_P], 0.0)
-        sh += mr[b + SL_H]
-    ba = max(vol[ipl, V_MA] - sa, 0.0)
-    bm = max(vol[ipl, V_MM] - sm, 0.0)
-    bp = max(vol[ipl, V_MP] - sp, 0.0)
-    mb = ba + bm + bp
-    mpl = vol[ipl, V_MA] + vol[ipl, V_MM] + vol[ipl, V_MP]
-    if mb > 0.25 * mpl:
-        return ba / mb, bm / mb, bp / mb, (mpl * props[ipl, PR_H] - sh) / mb
-    return props[ipl, PR_YA], props[ipl, PR_YM], props[ipl, PR_YP], props[ipl, PR_H]
-
-
-@njit(cache=True, fastmath=FASTMATH, _nrt=False, inline="always")
-def _slug_flow(ipl, dn, m, mr, dmr, b, slug_v, yb_a, yb_m, yb_p, hb, dt, props, dvol):
-    """Flow ``m`` [kg/s] plenum node -> runner (negative: back into the plenum node) through a backflow slug.
-
-    Backflow enters the slug ``mr[b:b + NSLUG]`` with the composition and
-    enthalpy of the gas it comes from.  Forward flow takes the share
-    phi = m_s / (m_s + PHI_DT m dt) from the slug and the rest from the plenum's
-    bulk (composition ``yb_*``, specific enthalpy ``hb`` [J/kg]).  With PHI_DT =
-    1/2 that is the step's discretisation of "all from the slug until it is
-    empty": phi is 1 to within PHI_DT dt m / m_s, and in the step where the slug
-    runs out the Heun predictor overshoots below zero, the second stage draws
-    nothing and the slug ends the step exactly empty.  (A wider transition,
-    PHI_DT = 1 or 2, left a tail of slug that never emptied and a
-    cycle-to-cycle noise floor of ~3e-5 at low load.)
-
-    The slug has room for ``slug_v`` [m^3] times the node's density: as it fills
-    the last fifth of that room, backflow pushes a growing share g (a
-    smoothstep from 0 at 80 % to 1 at 100 % full) of its own mass out of the
-    slug's far end into the bulk, so a full slug passes on what it takes in (a
-    ramp, not a switch, keeps the right-hand side continuous).  Mass, species
-    and energy of the plenum node and of the runner's downstream volume change
-    exactly as for any other flow; the slug is a ledger inside the node.
-    """
-    room = slug_v * props[ipl, PR_RHO]          # [kg]
-    s_a = max(mr[b + SL_A], 0.0)
-    s_m = max(mr[b + SL_M], 0.0)
-    s_p = max(mr[b + SL_P], 0.0)
-    ms = s_a + s_m + s_p
-    live = ms > SLUG_EMPTY * room               # below: counts as empty (no 1/ms of denormal masses)
-    inv = 1.0 / ms if live else 0.0
-    hs = mr[b + SL_H] * inv if live else hb
-    if m >= 0.0:
-        phi = ms / (ms + PHI_DT * m * dt) if live else 0.0
-        w = m * phi * inv                       # [1/s]: share of the slug leaving per second
-        dmr[b + SL_A] = -w * s_a
-        dmr[b + SL_M] = -w * s_m
-        dmr[b + SL_P] = -w * s_p
-        dmr[b + SL_H] = -m * phi * hs
-        # what the runner receives: the slug's share plus the bulk's
-        ya = phi * s_a * inv + (1.0 - phi) * yb_a
-        ym = phi * s_m * inv + (1.0 - phi) * yb_m
-        yp = phi * s_p * inv + (1.0 - phi) * yb_p
-        _transfer_as(ipl, dn, m, ya, ym, yp, phi * hs + (1.0 - phi) * hb, dvol)
-    else:
-        dmr[b + SL_A] = -m * props[dn, PR_YA]
-        dmr[b + SL_M] = -m * props[dn, PR_YM]
-        dmr[b + SL_P] = -m * props[dn, PR_YP]
-        dmr[b + SL_H] = -m * props[dn, PR_H]
-        x = (ms / room - 0.8) * 5.0             # 0 at 80 %, 1 at 100 % of the room
-        if x > 0.0 and live:
-            g = 1.0 if x >= 1.0 else x * x * (3.0 - 2.0 * x)
-            r = -m * g * inv                    # [1/s]: share of the slug pushed on into the bulk
-            dmr[b + SL_A] -= r * s_a
-            dmr[b + SL_M] -= r * s_m
-            dmr[b + SL_P] -= r * s_p
-            dmr[b + SL_H] -= r * ms * hs
-        _transfer_as(ipl, dn, m, props[dn, PR_YA], props[dn, PR_YM], props[dn, PR_YP], props[dn, PR_H], dvol)
+    t = props[ip, PR_T]
+    mu = gas_viscosity(t)
+    g = props[ip, PR_G]
+    cp = g * props[ip, PR_R] / (g - 1.0)
+    re = 4.0 * abs(m) / (math.pi * diam * mu)
+    if re < 1.0:
+        return 0.0
+    h = 0.023 * re ** 0.8 * PRANDTL_PORT ** 0.4 * mu * cp / PRANDTL_PORT / diam
+    return mult * h * area * (t_wall - t)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _consistent_slugs(vol, mr, ipl, nflow, ncyl):
-    """Keep the slug ledgers inside the plenum node after an extrapolated (or supplied) state.
+def _lumped_runners(vol, mr, par, props, vcur, nvol, ncyl, dt, dvol, dmr, rate):
+    """Lumped runners (``P_GASX`` = 0): mass flows with a momentum equation per segment, or resistances.
 
-    No slug species below zero, and together no more of a species than the node
-    holds (scaled down, with its enthalpy content, where they would).
+    Intake runner k joins the plenum to port k, exhaust runner k port k to the collector.  Each runner is
+    ``nseg`` lumped segments in series, a mass-flow state with its momentum equation per segment; the
+    joints between segments are gas volumes (indices from the collector + 1 on, see ``n_volumes``).  The
+    loss factor k_r (exit dump, minor losses and wall friction, see ``prepare``) is spread evenly over the
+    segments, so in steady flow the runner's pressure drop is k_r * m^2 / (2 rho A^2) whatever ``nseg``.
     """
-    for c in range(3):
-        tot = 0.0
-        for k in range(ncyl):
-            b = nflow + NSLUG * k
-            if mr[b + c] < 0.0:
-                mr[b + c] = 0.0
-            tot += mr[b + c]
-        have = max(vol[ipl, c], 0.0)
-        if tot > have:
-            f = have / tot
-            for k in range(ncyl):
-                b = nflow + NSLUG * k
-                ms = mr[b + SL_A] + mr[b + SL_M] + mr[b + SL_P]
-                cut = mr[b + c] * (1.0 - f)
-                if ms > 0.0:
-                    mr[b + SL_H] *= (ms - cut) / ms
-                mr[b + c] -= cut
-
-
-@njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-            vcur, dvol, dmr, acc, rate, E):
-    """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.
-
-    Returns a failure code (0 = ok).  ``acc`` receives the rates of the cycle integrals.
-    """
-    ncyl = int(par[P_NCYL])
-    nstep = int(par[P_NSTEP])
-    dt = par[P_DT]
-    far = par[P_FAR]
     ipl = 3 * ncyl
-    itb = ipl + 1
     icol = ipl + 2
-    amb = nvol
-    eps = par[P_NET_EPS]
-    # current volumes of the cylinders
-    for k in range(ncyl):
-        li = (s_step + stage - offs[k]) % nstep
-        vcur[k] = tab[T_V, li]
-    code = _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
-    if code != 0:
-        return code
-    dvol[:, :] = 0.0
-    acc[:] = 0.0
-    rate[:] = 0.0
-
-    # ---- runners (intake k: plenum -> port k; exhaust k: port k -> collector).
-    # Each runner is ``nseg`` lumped segments in series, a mass-flow state with
-    # its momentum equation per segment; the joints between segments are gas
-    # volumes (indices from icol + 1 on, see ``n_volumes``).  The loss factor k_r
-    # (exit dump, minor losses and wall friction, see ``prepare``) is spread evenly
-    # over the segments, so in steady flow the runner's pressure drop is
-    # k_r * m^2 / (2 rho A^2) whatever ``nseg``.
     jnt = icol + 1
-    # Backflow slugs of the intake runners (``P_IR_SLUG_V`` > 0): gas pushed back out
-    # of a port is held, in the runner's plenum-side share of the plenum node, as a
-    # slug of its own composition and enthalpy, and is the first gas that runner
-    # draws again; only what overflows that share joins the plenum's bulk.  The
-    # plenum node's pressure and temperature stay those of all its gas; the bulk,
-    # which every runner draws once its slug is used up, is the node minus the slugs.
-    slug_v = par[P_IR_SLUG_V]
-    slug_on = slug_v > 0.0 and par[P_IR_INERTIA] > 0.5
-    nflow = ncyl * (int(par[P_IR_NSEG]) + int(par[P_ER_NSEG]))
-    if slug_on:
-        yb_a, yb_m, yb_p, hb = _plenum_bulk(vol, mr, props, ipl, nflow, ncyl)
-    else:
-        yb_a, yb_m, yb_p, hb = props[ipl, PR_YA], props[ipl, PR_YM], props[ipl, PR_YP], props[ipl, PR_H]
     for side in range(2):
         if side == 0:
             a_r = par[P_IR_A]
@@ -262,25 +133,63 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
                     rho = props[up, PR_RHO] if m >= 0.0 else props[dn, PR_RHO]
                     dmr[idx] = c_dp * (props[up, PR_P] - props[dn, PR_P]) - c_loss * m * abs(m) / rho
                 else:
-                    m = _orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
+                    m = orifice_between(up, dn, a_r / math.sqrt(k_r), props, dt)
                     dmr[idx] = 0.0
-                if slug_on and side == 0 and j == 0:
-                    _slug_flow(up, dn, m, mr, dmr, nflow + NSLUG * k, slug_v, yb_a, yb_m, yb_p, hb, dt, props, dvol)
-                else:
-                    _transfer(up, dn, m, nvol, props, dvol)
-                _add_rate(up, dn, m, nvol, props, vcur, rate)
+                transfer(up, dn, m, nvol, props, dvol)
+                add_rate(up, dn, m, nvol, props, vcur, rate)
             jnt += nseg - 1
 
-    # ---- exhaust collector -> ambient.  The tailpipe beyond the collector is
-    # full of exhaust gas, so gas drawn back in has the collector's composition
-    # and temperature (pseudo-volume ``tpipe`` at ambient pressure), not fresh air.
-    tpipe = nvol + 1
-    for c in range(NPR):
-        props[tpipe, c] = props[icol, c]
-    props[tpipe, PR_P] = par[P_PAMB]
-    props[tpipe, PR_RHO] = par[P_PAMB] / (props[icol, PR_R] * props[icol, PR_T])
-    props[tpipe, PR_S] = 0.0
-    props[tpipe, PR_GV] = 0.0
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+            vcur, dvol, dmr, acc, rate, E, xfer, xrate, have_props):
+    """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.
+
+    ``xfer`` / ``xrate``: what the pipes bring each volume over the step (1D; see :func:`.pipenet.pipe_step`),
+    added as constant rates in both stages.  ``have_props``: ``props`` already holds this state.
+    Returns a failure code (0 = ok).  ``acc`` receives the rates of the cycle integrals.
+    """
+    ncyl = int(par[P_NCYL])
+    nstep = int(par[P_NSTEP])
+    dt = par[P_DT]
+    far = par[P_FAR]
+    ipl = 3 * ncyl
+    itb = ipl + 1
+    icol = ipl + 2
+    amb = nvol
+    eps = par[P_NET_EPS]
+    pipes_on = par[P_GASX] > 0.5
+    # current volumes of the cylinders
+    for k in range(ncyl):
+        li = (s_step + stage - offs[k]) % nstep
+        vcur[k] = tab[T_V, li]
+    if not have_props:
+        code = eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
+        if code != 0:
+            return code
+    dvol[:, :] = 0.0
+    acc[:] = 0.0
+    rate[:] = 0.0
+
+    # ---- runners: lumped flows, or the pipes' transfers over this step as constant rates
+    if pipes_on:
+        inv_dt = 1.0 / dt
+        for i in range(ncyl, nvol):
+            for c in range(NVCOL - 1):
+                dvol[i, c] += xfer[i, c] * inv_dt
+            rate[i] += xrate[i] * inv_dt
+    else:
+        _lumped_runners(vol, mr, par, props, vcur, nvol, ncyl, dt, dvol, dmr, rate)
+        # exhaust collector -> ambient.  The tailpipe beyond the collector is full of exhaust gas, so gas
+        # drawn back in has the collector's composition and temperature (pseudo-volume ``tpipe`` at
+        # ambient pressure), not fresh air.
+        tpipe = nvol + 1
+        for c in range(NPR):
+            props[tpipe, c] = props[icol, c]
+        props[tpipe, PR_P] = par[P_PAMB]
+        props[tpipe, PR_RHO] = par[P_PAMB] / (props[icol, PR_R] * props[icol, PR_T])
+        props[tpipe, PR_S] = 0.0
+        props[tpipe, PR_GV] = 0.0
 
     # ---- cylinders: combustion, wall heat, piston work, knock
     for k in range(ncyl):
@@ -331,15 +240,16 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
             tu = end_gas_temperature(p, ref[k, 0], ref[k, 1], ref[k, 3])
             acc[base + AC_KNOCK] += 1.0 / ignition_delay(p, tu, par[P_KN_A], par[P_KN_N], par[P_KN_B])
 
-    # ---- orifice elements.  Those outside the network (legacy treatment) first,
-    # so that their flows enter the network solve as known pressure rates.
-    # element rows: 0 throttle, 1 restrictor, 2 tailpipe, 3+2k intake valve k, 4+2k exhaust valve k
-    _lin_between(amb, itb, par[P_THR_CDA], 0.0, props, eps, E, 0)
-    _lin_between(itb, ipl, par[P_RES_CDA], par[P_RES_REC], props, eps, E, 1)
-    _lin_between(icol, tpipe, par[P_TP_CDA], 0.0, props, eps, E, 2)
-    # network solves: [throttle body, plenum], [collector], [intake port, cylinder, exhaust port] per cylinder
-    _solve_two(0, 1, E, props, rate, nvol, dt)
-    _solve_one(2, E, props, rate, nvol, dt)
+    # ---- orifice elements.  Those outside the network first, so that their flows enter the network
+    # solve as known pressure rates.
+    # element rows: 0 throttle, 1 restrictor, 2 tailpipe (lumped), 3+2k intake valve k, 4+2k exhaust valve k
+    lin_between(amb, itb, par[P_THR_CDA], 0.0, props, eps, E, 0)
+    lin_between(itb, ipl, par[P_RES_CDA], par[P_RES_REC], props, eps, E, 1)
+    # network solves: [throttle body, plenum], (lumped) [collector], [intake port, cylinder, exhaust port]
+    solve_two(0, 1, E, props, rate, nvol, dt)
+    if not pipes_on:
+        lin_between(icol, nvol + 1, par[P_TP_CDA], 0.0, props, eps, E, 2)
+        solve_one(2, E, props, rate, nvol, dt)
     for k in range(ncyl):
         le = (s_step + stage - offs[k]) % nstep
         e = 3 + 2 * k
@@ -348,49 +258,56 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
         aiv = tab[T_AIV, le]
         aev = tab[T_AEV, le]
         if aiv > 0.0:
-            _lin_between(ncyl + k, k, aiv, 0.0, props, eps, E, e)
+            lin_between(ncyl + k, k, aiv, 0.0, props, eps, E, e)
         if aev > 0.0:
-            _lin_between(k, 2 * ncyl + k, aev, 0.0, props, eps, E, e + 1)
+            lin_between(k, 2 * ncyl + k, aev, 0.0, props, eps, E, e + 1)
         if aiv > 0.0 and aev > 0.0:
-            _solve_two(e, e + 1, E, props, rate, nvol, dt)
+            solve_two(e, e + 1, E, props, rate, nvol, dt)
         elif aiv > 0.0:
-            _solve_one(e, E, props, rate, nvol, dt)
+            solve_one(e, E, props, rate, nvol, dt)
         elif aev > 0.0:
-            _solve_one(e + 1, E, props, rate, nvol, dt)
+            solve_one(e + 1, E, props, rate, nvol, dt)
 
     # ---- apply the flows (each leaves one volume and enters another, same mass and enthalpy)
     mth = E[0, 6]
-    _transfer(amb, itb, mth, nvol, props, dvol)
+    transfer(amb, itb, mth, nvol, props, dvol)
     acc[A_AIR] += mth * (1.0 if mth >= 0.0 else props[itb, PR_YA])   # air only: what an airflow meter sees
     acc[A_MIN] += mth                                                 # all species: for the mass balance
     acc[A_HAIR] += mth * (props[amb, PR_H] if mth >= 0.0 else props[itb, PR_H])
-    mres = E[1, 6]
-    if mres < 0.0 and slug_on:
-        # gas pushed back through the restrictor comes from the plenum's bulk, not from the runners' slugs
-        _transfer_as(itb, ipl, mres, yb_a, yb_m, yb_p, hb, dvol)
-    else:
-        _transfer(itb, ipl, mres, nvol, props, dvol)
-    mtp = E[2, 6]
-    _transfer(icol, tpipe, mtp, nvol, props, dvol)
-    acc[A_OUT] += mtp
-    acc[A_HOUT] += mtp * props[icol, PR_H]
+    transfer(itb, ipl, E[1, 6], nvol, props, dvol)
+    if not pipes_on:
+        mtp = E[2, 6]
+        transfer(icol, nvol + 1, mtp, nvol, props, dvol)
+        acc[A_OUT] += mtp
+        acc[A_HOUT] += mtp * props[icol, PR_H]
+    evap = par[P_EVAP]
     for k in range(ncyl):
         base = A_CYL0 + AC_N * k
         e = 3 + 2 * k
-        m = E[e, 6]
-        if m != 0.0:
-            _iv_transfer(ncyl + k, k, m, far, fuel_c, nvol, props, dvol, acc)
-        m = E[e + 1, 6]
-        if m != 0.0:
-            _transfer(k, 2 * ncyl + k, m, nvol, props, dvol)
-            if m > 0.0:
-                acc[base + AC_EXM] += m
-                acc[base + AC_EXMT] += m * props[k, PR_T]
+        m_in = E[e, 6]
+        if m_in != 0.0:
+            iv_transfer(ncyl + k, k, m_in, far, fuel_c, evap, nvol, props, dvol, acc)
+        m_ex = E[e + 1, 6]
+        if m_ex != 0.0:
+            transfer(k, 2 * ncyl + k, m_ex, nvol, props, dvol)
+            if m_ex > 0.0:
+                acc[base + AC_EXM] += m_ex
+                acc[base + AC_EXMT] += m_ex * props[k, PR_T]
+        # port wall heat transfer at the flow through the port's valve
+        if par[P_PHT_MULT] > 0.0:
+            qi = _port_heat(ncyl + k, m_in, props, par[P_PHT_A_IN], par[P_PHT_D_IN], par[P_PHT_TW_IN],
+                            par[P_PHT_MULT])
+            qe = _port_heat(2 * ncyl + k, m_ex, props, par[P_PHT_A_EX], par[P_PHT_D_EX], par[P_PHT_TW_EX],
+                            par[P_PHT_MULT])
+            dvol[ncyl + k, V_U] += qi
+            dvol[2 * ncyl + k, V_U] += qe
+            acc[A_QPORT] += qi + qe
     return 0
 
 
 @njit(cache=True, fastmath=FASTMATH)
-def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, trace, hist):
+def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, trace, hist,
+               pipes, geom, q, tcell, ends, endp):
     """Integrate whole cycles until the engine repeats itself.
 
     Parameters
@@ -409,11 +326,9 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         Fuel-vapour coefficients.
     vol : (nvol, NVCOL) float64
         Initial state of every volume; overwritten with the final state.
-    mr : (ncyl * (nseg_in + nseg_ex + NSLUG),) float64
-        Runner state: segment mass flows [kg/s] (intake runners, then exhaust,
-        each runner's segments from its upstream end), then each intake runner's
-        backflow slug (air, mixture, products [kg], enthalpy content [J]; used
-        when ``par[P_IR_SLUG_V] > 0``, zeros otherwise); overwritten.
+    mr : (ncyl * (nseg_in + nseg_ex),) float64
+        Lumped runner state: segment mass flows [kg/s] (intake runners, then exhaust, each runner's
+        segments from its upstream end); empty in the 1D gas exchange; overwritten.
     ref : (ncyl, 5) float64
         Per-cylinder reference state of the closed period: pressure [Pa],
         temperature [K] and volume [m^3] at IVC, isentropic exponent
@@ -427,13 +342,20 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         Volumes [m^3] (cylinder entries ignored).
     out : (NOUT,) float64
         Cycle results of the last cycle (``O_*``).
-    trace : (2*ncyl + 5, nstep) float64
-        Last-cycle traces: cylinder pressures, cylinder temperatures, plenum,
-        collector, throttle-body, intake-port-1 and exhaust-port-1 pressures [Pa, K].
-    hist : (nh, H_N0 + nvol*(NVCOL-1) + len(mr)) float64
+    trace : (2*ncyl + NTR_EXTRA, nstep) float64
+        Last-cycle traces: cylinder pressures, cylinder temperatures, plenum, collector, throttle-body,
+        intake-port-1 and exhaust-port-1 pressures, then the pressures in intake runner 1 (middle, port
+        end) and exhaust primary 1 (port end, middle) [Pa, K] (port pressures when lumped).
+    hist : (nh, H_N0 + nvol*(NVCOL-1) + len(mr) + ncell*NQ) float64
         Per-cycle record (row = cycle - 1, up to ``nh`` cycles; ``nh`` may be 0):
         trapped mass [kg], net work [J], mass imbalance [-], then the end-of-cycle
-        state (volume masses and energies, runner flows).
+        state (volume masses and energies, runner flows, pipe cells).
+    pipes : (npipe, 2) int64; geom : (NG, ncell) float64
+        Pipe layout and cell geometry (:func:`.pipes.build_pipes`); empty when lumped.
+    q : (ncell, NQ) float64; tcell : (ncell,) float64
+        Pipe cell state and temperatures (Newton start); overwritten with the final state.
+    ends : (npipe, 2, NE) int64; endp : (npipe, 2, NEP) float64
+        What is at each pipe end and its parameters (:mod:`.pipenet`).
     """
     ncyl = int(par[P_NCYL])
     nstep = int(par[P_NSTEP])
@@ -448,13 +370,16 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     maxcyc = int(par[P_MAXCYC])
     mincyc = int(par[P_MINCYC])
     tol = par[P_TOL]
+    pipes_on = par[P_GASX] > 0.5
+    ncell = q.shape[0]
+    npipe = pipes.shape[0]
 
     cbuf = np.empty(4)
     t_start = np.zeros(nvol)            # start-of-step temperature of the previous step [K] (0 = none yet)
     hcoeffs = np.empty((3, 2, 6))      # enthalpy-polynomial form of ``coeffs`` for the property evaluation
     enthalpy_coeffs_into(coeffs, hcoeffs)
-    props = np.zeros((nvol + 2, NPR))   # + ambient, + tailpipe pseudo-volume
-    _set_ambient(props, nvol, par, coeffs, rsp)
+    props = np.zeros((nvol + 2, NPR))   # + ambient, + (lumped) tailpipe pseudo-volume
+    set_ambient(props, nvol, par, coeffs, rsp)
     vcur = vfix.copy()
     vol1 = np.empty_like(vol)
     d0 = np.empty_like(vol)
@@ -467,6 +392,24 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     a0 = np.zeros(nacc)
     a1 = np.zeros(nacc)
     cyc_acc = np.zeros(nacc)
+    # pipe work arrays (1D)
+    prim = np.zeros((NPM, ncell))
+    fric = np.full((NF, ncell), np.nan)
+    work = np.zeros((NWK, ncell))
+    bflux = np.zeros((npipe, 2, NQ))
+    wb = np.zeros((npipe, 2, 2))
+    xfer = np.zeros((nvol + 1, NVCOL))
+    xrate = np.zeros(nvol + 1)
+    counter = np.zeros(1, dtype=np.int64)
+    fric_every = max(int(par[P_FRIC_EVERY]), 1)
+    cfl = par[P_CFL]
+    # trace cells: intake runner 1 middle and port end, exhaust primary 1 port end and middle
+    tr_cells = np.zeros(4, dtype=np.int64)
+    if npipe > ncyl:
+        tr_cells[0] = pipes[0, 0] + pipes[0, 1] // 2
+        tr_cells[1] = pipes[0, 0] + pipes[0, 1] - 1
+        tr_cells[2] = pipes[ncyl, 0]
+        tr_cells[3] = pipes[ncyl, 0] + pipes[ncyl, 1] // 2
     # per-cylinder reference state: p_ivc, T_ivc, V_ivc, isentropic exponent, mixture mass at SOC
     for k in range(ncyl):
         if not (ref[k, 1] > 0.0):
@@ -479,10 +422,6 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         if tab[T_PHASE, li0] > 1.5 and li0 != idx_soc:
             xb0 = tab[T_XB, li0]
             ref[k, 4] = vol[k, V_MM] / (1.0 - xb0) if xb0 < 1.0 - 1e-9 else vol[k, V_MM]
-    nflow = ncyl * (int(par[P_IR_NSEG]) + int(par[P_ER_NSEG]))
-    slug_on = par[P_IR_SLUG_V] > 0.0 and par[P_IR_INERTIA] > 0.5   # same test as ``_derivs`` (mr's shape: simulate_point)
-    if slug_on:
-        _consistent_slugs(vol, mr, ipl, nflow, ncyl)
     knock_run = np.zeros(ncyl)       # running Livengood-Wu integral since IVC
     knock_cyc = np.zeros(ncyl)       # value reached in this cycle
     trapped = np.zeros(ncyl)
@@ -493,13 +432,19 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     wgross = np.zeros(ncyl)
     wpump = np.zeros(ncyl)
     ppl_sum = 0.0
+    out_m = 0.0                      # 1D: mass and enthalpy out of the tailpipe this cycle
+    out_h = 0.0
+    pipe_e_in = 0.0                  # 1D: energy into the pipes through their ends this cycle
+    pipe_e0 = 0.0
+    max_sub = 0
+    max_cour = 0.0
 
     prev_trap = -1.0
     prev_work = 0.0
     # MPE acceleration of the slow cycle-to-cycle modes (see ``accel``)
     acc_k = int(par[P_ACCEL_K])
     acc_warm = int(par[P_ACCEL_WARM])
-    nx = nvol * (NVCOL - 1) + mr.shape[0]
+    nx = nvol * (NVCOL - 1) + mr.shape[0] + ncell * NQ
     xs = np.zeros((max(acc_k, 1) + 2, nx))
     xw = np.zeros(nx)
     xe = np.zeros(nx)
@@ -521,8 +466,14 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         wpump[:] = 0.0
         knock_cyc[:] = 0.0
         ppl_sum = 0.0
+        out_m = 0.0
+        out_h = 0.0
+        pipe_e_in = 0.0
+        pipe_e0 = pipe_energy(q)
+        max_sub = 0
+        max_cour = 0.0
         for s in range(nstep):
-            # crank-angle events at the start of the step
+            # ---- crank-angle events at the start of the step
             for k in range(ncyl):
                 li = (s - offs[k]) % nstep
                 if li == idx_ivc:
@@ -534,12 +485,34 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                     knock_run[k] = 0.0
                 if li == idx_soc:
                     ref[k, 4] = vol[k, V_MM]
-            # stage 1
+            # ---- pipes: one crank step in sub-steps, against the volumes' start-of-step state
+            have = False
+            if pipes_on:
+                for k in range(ncyl):
+                    vcur[k] = tab[T_V, (s - offs[k]) % nstep]
+                fail = eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props)
+                if fail != 0:
+                    break
+                counter[0] = s     # friction refresh at fixed crank steps of the cycle
+                fail, nsub, e_step, cour = pipe_step(q, tcell, geom, pipes, prim, fric, work, bflux, wb, ends, endp,
+                                               props, nvol, hcoeffs, rsp, dt, cfl, fric_every, counter, xfer,
+                                               xrate)
+                if fail != 0:
+                    break
+                have = True
+                pipe_e_in += e_step
+                out_m += xfer[nvol, V_MA] + xfer[nvol, V_MM] + xfer[nvol, V_MP]
+                out_h += xfer[nvol, V_U]
+                if nsub > max_sub:
+                    max_sub = nsub
+                if cour > max_cour:
+                    max_cour = cour
+            # ---- stage 1
             fail = _derivs(vol, mr, s, 0, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-                           vcur, d0, dm0, a0, rate, E)
+                           vcur, d0, dm0, a0, rate, E, xfer, xrate, have)
             if fail != 0:
                 break
-            # record the state at the start of the step
+            # ---- record the state at the start of the step
             for k in range(ncyl):
                 li = (s - offs[k]) % nstep
                 p = props[k, PR_P]
@@ -560,8 +533,13 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             trace[2 * ncyl + 2, s] = props[itb, PR_P]
             trace[2 * ncyl + 3, s] = props[ncyl, PR_P]
             trace[2 * ncyl + 4, s] = props[2 * ncyl, PR_P]
+            for r in range(4):
+                if pipes_on:
+                    trace[2 * ncyl + 5 + r, s] = prim[PM_P, tr_cells[r]]
+                else:
+                    trace[2 * ncyl + 5 + r, s] = props[ncyl if r < 2 else 2 * ncyl, PR_P]
             ppl_sum += props[ipl, PR_P]
-            # stage 2 (predictor state at the end of the step)
+            # ---- stage 2 (predictor state at the end of the step)
             # Newton start for the end-of-step temperatures: linear extrapolation in
             # time from the last two start-of-step temperatures (leaves ~T'' dt^2
             # to iterate instead of ~T' dt; the answer does not depend on it)
@@ -573,15 +551,8 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 t_start[i] = t0
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
-            if slug_on:
-                # a slug that runs out within the step overshoots below zero in the predictor (its second
-                # stage then draws nothing and the step ends with it empty, see ``_slug_flow``); where the
-                # plenum's bulk holds none of a species, the node's predicted mass of it overshoots with it
-                for c in range(V_U):
-                    if vol1[ipl, c] < 0.0:
-                        vol1[ipl, c] = 0.0
             fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
-                           vcur, d1, dm1, a1, rate, E)
+                           vcur, d1, dm1, a1, rate, E, xfer, xrate, False)
             if fail != 0:
                 break
             h2 = 0.5 * dt
@@ -604,6 +575,9 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 knock_run[k] += h2 * (a0[base + AC_KNOCK] + a1[base + AC_KNOCK])
         if fail != 0:
             break
+        if pipes_on:
+            cyc_acc[A_OUT] += out_m
+            cyc_acc[A_HOUT] += out_h
         # ---- end of cycle: convergence on trapped mass, net work and mass balance
         mtrap = trapped.sum()
         wnet = wgross.sum() + wpump.sum()
@@ -646,35 +620,43 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
             for i in range(mr.shape[0]):
                 hist[hrow, j] = mr[i]
                 j += 1
+            for i in range(ncell):
+                for c in range(NQ):
+                    hist[hrow, j] = q[i, c]
+                    j += 1
         prev_trap = mtrap
         prev_work = wnet
         if converged == 1:
             break
         # ---- acceleration: MPE over the last acc_k + 2 end-of-cycle states
         if acc_k > 0 and cyc >= acc_warm:
-            pack_state(vol, mr, xs[n_x])
+            pack_state(vol, mr, q, xs[n_x])
             n_x += 1
             if n_x == acc_k + 2:
                 jumped = False
                 if have_est and est > tol and cyc + 3 <= maxcyc:
-                    state_weights(vol, mr, xw, ncyl)
+                    state_weights(vol, mr, q, xw, ncyl)
                     ratio = mpe(xs, n_x, xw, xe, G, grhs)
                     if ratio >= 0.0:
                         # a species mass that the extrapolation would drive below zero
                         # (mixture left in the exhaust from the start, decaying to 0)
-                        # drops to a tenth instead
+                        # drops to a tenth instead; likewise in the pipe cells
                         xl = xs[n_x - 1]
                         for j in range(nvol * (NVCOL - 1)):
                             if j % (NVCOL - 1) < V_U and xe[j] < 0.1 * xl[j]:
                                 xe[j] = 0.1 * xl[j]
-                        unpack_state(xe, vol, mr)
-                        if slug_on:
-                            _consistent_slugs(vol, mr, ipl, nflow, ncyl)
+                        j0 = nvol * (NVCOL - 1) + mr.shape[0]
+                        for i in range(ncell):
+                            for c in (Q_A, Q_M, Q_P):
+                                j = j0 + i * NQ + c
+                                if xe[j] < 0.1 * xl[j]:
+                                    xe[j] = 0.1 * xl[j]
+                        unpack_state(xe, vol, mr, q)
                         jumped = True
                         rho_slow = min(max(ratio, RHO_START), RHO_MAX)
                         prev_trap = -1.0   # the next cycle starts a fresh comparison
                 if jumped:
-                    pack_state(vol, mr, xs[0])
+                    pack_state(vol, mr, q, xs[0])
                     n_x = 1
                 else:
                     for r in range(n_x - 1):
@@ -699,6 +681,12 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
     out[O_FUEL_BURNED] = cyc_acc[A_BURN]
     out[O_WGROSS] = wgross.sum()
     out[O_WPUMP] = wpump.sum()
+    out[O_QPORT] = cyc_acc[A_QPORT]
+    if pipes_on:
+        # heat the pipes' gas took from their walls: the change of their energy minus what came in at the ends
+        out[O_QPIPE] = (pipe_energy(q) - pipe_e0) - pipe_e_in
+        out[O_SUBSTEPS] = max_sub
+        out[O_COURANT] = max_cour
     exm = 0.0
     exmt = 0.0
     for k in range(ncyl):

@@ -2,7 +2,7 @@
 
 from numba import njit
 
-from .layout import FASTMATH
+from engine_model.cycle.layout import FASTMATH
 
 
 @njit(cache=True, fastmath=FASTMATH)

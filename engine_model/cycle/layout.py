@@ -77,17 +77,30 @@ P_ACCEL_K = 40      # modes removed per MPE extrapolation of the cycle iteration
 P_NET_EPS = 41      # orifice law continued linearly below 1 - p_dn/p_up < eps [-] (finite conductance at equal pressures)
 P_ER_NSEG = 42      # lumped segments per exhaust runner
 P_ACCEL_WARM = 43   # first cycle whose end state enters the MPE window
-P_IR_SLUG_V = 44    # gas volume of an intake runner's plenum-side share [m3] that holds its backflow slug (0 = backflow mixes into the plenum)
-NPAR = 45
+P_GASX = 44         # gas exchange: 0 = lumped runners, 1 = quasi-1D pipes
+P_CFL = 45          # Courant number of the pipe sub-steps [-]
+P_EVAP = 46         # latent heat the port-injected fuel takes from the charge [J per kg of fuel]
+P_PHT_MULT = 47     # multiplier on the port wall heat-transfer coefficient [-]
+P_PHT_A_IN = 48     # intake port wall area [m2]
+P_PHT_D_IN = 49     # intake port hydraulic diameter [m]
+P_PHT_TW_IN = 50    # intake port wall temperature [K]
+P_PHT_A_EX = 51     # exhaust port wall area [m2]
+P_PHT_D_EX = 52     # exhaust port hydraulic diameter [m]
+P_PHT_TW_EX = 53    # exhaust port wall temperature [K]
+P_FRIC_EVERY = 54   # pipe friction factors refreshed every this many pipe sub-steps
+NPAR = 55
 
 # ------------------------------------------------------------------ runner state array (mr)
-# mr[: ncyl * (nseg_in + nseg_ex)] are the runner segment mass flows [kg/s]; then
-# NSLUG entries per intake runner: the backflow slug held in its plenum-side share
-SL_A = 0    # air [kg]
-SL_M = 1    # fresh mixture [kg]
-SL_P = 2    # products [kg]
-SL_H = 3    # enthalpy content [J] (the specific enthalpy it entered with, times its mass)
-NSLUG = 4
+# lumped gas exchange: mr[: ncyl * (nseg_in + nseg_ex)] are the runner segment mass flows [kg/s]
+# 1D gas exchange: mr is empty; the pipes' cell state is q[ncell, NQ] (see pipes.py)
+
+# ------------------------------------------------------------------ pipe-end table (ends[ip, side, :])
+E_KIND = 0     # boundary kind (BC_*)
+E_VOL = 1      # volume on the other side (nvol = ambient)
+NE = 2
+BC_OPEN = 1    # open end into a volume (pipe_bc.bc_open), endp[ip, side, 0] = entry loss k [-]
+BC_ORIFICE = 2  # orifice to a volume (pipe_bc.bc_orifice), endp[..., 0] = CdA out, endp[..., 1] = CdA in [m2]
+NEP = 2
 
 # ------------------------------------------------------------------ per-angle tables (tab[row, local_idx])
 T_V = 0        # cylinder volume [m3]
@@ -126,12 +139,19 @@ O_DTRAP = 21       # last relative change of trapped mass [-]
 O_DIMEP = 22       # last relative change of net work [-]
 O_MAIR_TRAP = 23   # fresh charge (air+fuel) trapped at IVC, all cylinders [kg]
 O_EST = 24         # estimated relative distance of the last cycle to the periodic solution [-]
-NOUT = 25
+O_QPORT = 25       # heat into the ports from their walls, all ports [J] (negative = to the walls)
+O_QPIPE = 26       # heat into the pipes' gas from their walls [J] (1D)
+O_SUBSTEPS = 27    # largest number of pipe sub-steps per crank step in the last cycle (1D)
+O_COURANT = 28     # largest Courant number of a whole crank step in the last cycle (1D)
+NOUT = 29
 
 # ------------------------------------------------------------------ traces of the last cycle (trace[row, global_idx])
 TR_P_CYL0 = 0      # rows 0..ncyl-1: cylinder pressures [Pa]
 # then: ncyl rows of cylinder temperatures, plenum pressure, collector pressure,
-# throttle-body pressure, intake-port-1 pressure, exhaust-port-1 pressure
+# throttle-body pressure, intake-port-1 pressure, exhaust-port-1 pressure, then (1D; port pressures
+# when lumped) the pressure in intake runner 1 at its middle and at its port end, and in exhaust
+# primary 1 at its port end and its middle [Pa]
+NTR_EXTRA = 9      # rows after the 2 * ncyl cylinder rows
 
 # ------------------------------------------------------------------ per-cycle history (hist[cycle-1, col])
 H_MTRAP = 0        # trapped mass at IVC, all cylinders [kg]

@@ -2,9 +2,9 @@
 
 from numba import njit
 
-from .flow import orifice_flow_lin, restrictor_flow, restrictor_throat_pressure
-from .layout import *  # noqa: F401,F403  (index constants)
-from .volumes import PR_G, PR_GV, PR_P, PR_R, PR_RT, PR_S, PR_T
+from engine_model.cycle.flow import orifice_flow_lin, restrictor_flow, restrictor_throat_pressure
+from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
+from engine_model.cycle.volumes import PR_G, PR_GV, PR_P, PR_R, PR_RT, PR_S, PR_T
 
 STIFF_FRACTION = 2.0  # single-element flows: solved implicitly when the explicit flow would move > 2x the equalising mass per step
 
@@ -51,7 +51,7 @@ def _implicit_flow(cda, rec, p_up, t_up, r_up, g_up, p_dn, s_up, s_dn, dt, m0):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _flow_between(i, j, cda, rec_fwd, props, dt):
+def flow_between(i, j, cda, rec_fwd, props, dt):
     """Signed flow i -> j [kg/s] through an orifice, or a venturi (recovery ``rec_fwd`` for i -> j only).
 
     Implicit in the two pressures where the explicit flow is stiff (see ``_implicit_flow``).
@@ -73,9 +73,9 @@ def _flow_between(i, j, cda, rec_fwd, props, dt):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _orifice_between(i, j, cda, props, dt):
+def orifice_between(i, j, cda, props, dt):
     """Signed orifice flow i -> j [kg/s]."""
-    return _flow_between(i, j, cda, 0.0, props, dt)
+    return flow_between(i, j, cda, 0.0, props, dt)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
@@ -85,7 +85,7 @@ def _coef(n, u, props, vcur):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _add_rate(i, j, m, nvol, props, vcur, rate):
+def add_rate(i, j, m, nvol, props, vcur, rate):
     """Pressure rates [Pa/s] of i and j caused by a flow m [kg/s] from i to j."""
     u = i if m >= 0.0 else j
     if i < nvol:
@@ -95,7 +95,7 @@ def _add_rate(i, j, m, nvol, props, vcur, rate):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _lin_between(i, j, cda, rec_fwd, props, eps, E, e):
+def lin_between(i, j, cda, rec_fwd, props, eps, E, e):
     """Signed flow i -> j and its linearisation, stored in row e of E (i, j, m0, dm/dp_i, -dm/dp_j, upstream)."""
     pi = props[i, PR_P]
     pj = props[j, PR_P]
@@ -155,7 +155,7 @@ def _lin_terms(e, E, props, rate, nvol, dt):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _solve_one(e, E, props, rate, nvol, dt):
+def solve_one(e, E, props, rate, nvol, dt):
     """Linearly implicit flow of a single element e; result in E[e, 6].
 
     The flow is linearised about the current pressures, m = m0 + a dP_i - b dP_j,
@@ -171,7 +171,7 @@ def _solve_one(e, E, props, rate, nvol, dt):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _solve_two(e1, e2, E, props, rate, nvol, dt):
+def solve_two(e1, e2, E, props, rate, nvol, dt):
     """Linearly implicit flows of two elements in series, e1: i -> s and e2: s -> j (results in E[e, 6]).
 
     The shared volume s sees both flows: dP_s = dt (rate_s + c_s1 m1 - c_s2 m2),

@@ -2,8 +2,8 @@
 
 from numba import njit
 
-from ..thermo import cp_mass, h_mass, mixture_tcphr
-from .layout import *  # noqa: F401,F403  (index constants)
+from engine_model.thermo import cp_mass, h_mass, mixture_tcphr
+from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
 
 # property columns of the scratch array ``props``
 # PR_S = gamma R T / V is the pressure change per kg of the volume's own gas
@@ -14,15 +14,15 @@ PR_P, PR_T, PR_R, PR_G, PR_H, PR_YA, PR_YM, PR_YP, PR_RHO, PR_S, PR_GV, PR_RT = 
 NPR = 12
 
 # accumulator layout: global entries, then 6 per cylinder
-A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN = range(8)
-A_CYL0 = 8
+A_AIR, A_HAIR, A_FUEL, A_HFUEL, A_OUT, A_HOUT, A_BURN, A_MIN, A_QPORT = range(9)
+A_CYL0 = 9
 AC_WORK, AC_Q, AC_KNOCK, AC_EXM, AC_EXMT = range(5)
 AC_N = 6
 
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
+def eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
     """Fill ``props`` (p, T, R, gamma, h, y, rho, stiffness) for every volume; return a failure code."""
     for k in range(nvol):
         ma = vol[k, V_MA]
@@ -60,7 +60,7 @@ def _eval_props(vol, vcur, nvol, hcoeffs, rsp, cbuf, props):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _transfer(i, j, mdot, nvol, props, dvol):
+def transfer(i, j, mdot, nvol, props, dvol):
     """Move ``mdot`` [kg/s] from i to j (negative: j to i) with the upstream composition and enthalpy."""
     u = i if mdot >= 0.0 else j
     fa = mdot * props[u, PR_YA]
@@ -80,7 +80,7 @@ def _transfer(i, j, mdot, nvol, props, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
+def transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
     """Move ``mdot`` [kg/s] from volume i to volume j with the given mass fractions and specific enthalpy [J/kg]."""
     fa = mdot * ya
     fm = mdot * ym
@@ -97,8 +97,13 @@ def _transfer_as(i, j, mdot, ya, ym, yp, h, dvol):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
-    """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air."""
+def iv_transfer(ip, k, m, far, fuel_c, evap, nvol, props, dvol, acc):
+    """Intake-valve flow port ip -> cylinder k; forward flow carries the injected fuel with its air.
+
+    The fuel enters the cylinder as vapour at the port temperature; the part ``evap`` [J per kg of fuel] of
+    its latent heat that it took from the charge while evaporating is taken from the port's gas (charge
+    cooling), the rest came from the walls.  The fuel's energy input is therefore m_f (h_vap - evap).
+    """
     if m >= 0.0:
         ya = props[ip, PR_YA]
         mf = m * ya * far
@@ -109,15 +114,16 @@ def _iv_transfer(ip, k, m, far, fuel_c, nvol, props, dvol, acc):
         dvol[ip, V_U] -= m * props[ip, PR_H]
         dvol[k, V_MM] += m * (ya + props[ip, PR_YM]) + mf
         dvol[k, V_MP] += m * props[ip, PR_YP]
+        dvol[ip, V_U] -= mf * evap
         dvol[k, V_U] += m * props[ip, PR_H] + mf * hf
         acc[A_FUEL] += mf
-        acc[A_HFUEL] += mf * hf
+        acc[A_HFUEL] += mf * (hf - evap)
     else:
-        _transfer(ip, k, m, nvol, props, dvol)
+        transfer(ip, k, m, nvol, props, dvol)
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _set_ambient(props, amb, par, coeffs, rsp):
+def set_ambient(props, amb, par, coeffs, rsp):
     t = par[P_TAMB]
     c = coeffs[SP_A]
     cp = cp_mass(c, t)

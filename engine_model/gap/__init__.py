@@ -10,15 +10,17 @@ Public API::
                                   best_pair)                                             # two effects at once
 """
 
-from .effects import (EFFECTS, ETA_TRANS_BASE, Effect, EffectParam, apply_effects, check_effects, effect_names,
+from engine_model.effects import (EFFECTS, ETA_TRANS_BASE, Effect, EffectParam, apply_effects, check_effects, effect_names,
                       get_effect, post_effects)
-from .linear import BaseModel, Linearisation, calibrate_base, linearise
-from .diagnose import MODEL_ERROR, NO_CANDIDATE, UNCERTAINTY, GapDiagnosis, diagnose
-from .api import choose_base, diagnose_bench
-from .benchmark import BENCHMARK_COLUMNS, run_benchmark
-from .design import discrimination_plan, select_discriminating
-from .pairs import NO_PAIR, PairSearch, best_pair
-from .report import write_benchmark_report, write_gap_report
+from engine_model.gap.linear import BaseModel, Linearisation, calibrate_base, linearise
+from engine_model.gap.covariance import MODEL_ERROR
+from engine_model.gap.diagnose import NO_CANDIDATE, GapDiagnosis, diagnose
+from engine_model.gap.residuals import UNCERTAINTY
+from engine_model.gap.api import choose_base, diagnose_bench
+from engine_model.gap.benchmark import BENCHMARK_COLUMNS, run_benchmark
+from engine_model.gap.design import discrimination_plan, select_discriminating
+from engine_model.gap.pairs import NO_PAIR, PairSearch, best_pair
+from engine_model.gap.report import write_benchmark_report, write_gap_report
 
 __all__ = ["EFFECTS", "ETA_TRANS_BASE", "Effect", "EffectParam", "apply_effects", "check_effects",
            "effect_names", "get_effect", "post_effects", "BaseModel", "Linearisation", "calibrate_base",

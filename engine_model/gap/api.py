@@ -5,17 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from .. import doe
-from ..spec import EngineSpec, default_spec
-from .covariance import DEFAULT_ERROR_MODEL
-from .diagnose import GapDiagnosis, check_bench_outputs, diagnose
-from .effects import ETA_TRANS_BASE
-from .linear import CURVED_BASE, BaseModel, calibrate_base, linearise
-from .pairs import best_pair
+from engine_model import priors
+from engine_model.contracts import PLAN_COLUMNS
+from engine_model.spec import EngineSpec, default_spec
+from engine_model.gap.covariance import DEFAULT_ERROR_MODEL
+from engine_model.gap.diagnose import GapDiagnosis, diagnose
+from engine_model.gap.fitting import operating_point_groups
+from engine_model.gap.residuals import check_bench_outputs
+from engine_model.effects import ETA_TRANS_BASE
+from engine_model.gap.linear import CURVED_BASE, BaseModel, calibrate_base, linearise
+from engine_model.gap.pairs import best_pair
 
 __all__ = ["choose_base", "diagnose_bench"]
 
-PLAN_COLUMNS = ("point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda")
 
 #: With ``choose_base(..., speed_curvature=True)`` the base carries a BDUR10-90 speed curvature on map-wide
 #: data (throttle varies) with at least this many distinct operating points spread over at least this
@@ -32,7 +34,7 @@ def choose_base(bench: pd.DataFrame, speed_curvature: bool = False) -> BaseModel
     Map-wide data: :data:`~engine_model.gap.linear.COMBUSTION_BASE` (BDUR10-90 offset, speed and load
     slopes).  A load term needs throttle variation (> 1 %); on a single load line (the paper's Table 2)
     the base is BDUR10-90 offset + speed slope.  The burn's spark slope (the burn lengthens with advance,
-    [H] sec. 9.3; see :mod:`engine_model.identify_sweep`) is added when the data span enough spark to
+    [H] sec. 9.3; see :mod:`engine_model.calibration.sweeps`) is added when the data span enough spark to
     carry it: operating points run as spark sweeps (at least 3 sparks spanning >= 6 deg at a typical
     operating point), or scattered points whose sparks lie over >= 6 deg around the MBT prior (a DOE with
     knock back-offs) with enough of them to pin a slope: std(spark offset) x sqrt(points) >= 10 deg (the
@@ -51,7 +53,6 @@ def choose_base(bench: pd.DataFrame, speed_curvature: bool = False) -> BaseModel
     -> 4 %, discriminating plan with the burn-scatter error model 19 % -> 11 %) but lets the out-of-library
     bump be named more often on the Sobol' design (4 % -> 18 %).
     """
-    from .diagnose import operating_point_groups
 
     t = bench["throttle_pct"].to_numpy(float)
     params = ["bdur_offset_deg", "bdur_speed_deg_per_krpm"]
@@ -63,7 +64,7 @@ def choose_base(bench: pd.DataFrame, speed_curvature: bool = False) -> BaseModel
         span = s.groupby(g).agg(lambda x: float(np.ptp(x)))
         count = s.groupby(g).nunique()
         ds = bench["spark_deg_btdc"].to_numpy(float) - np.atleast_1d(
-            doe.spark_estimate(bench["speed_rpm"].to_numpy(float), t))
+            priors.spark_estimate(bench["speed_rpm"].to_numpy(float), t))
         scattered = np.ptp(ds) >= 6.0 and float(np.std(ds)) * np.sqrt(ds.size) >= 10.0
         if (float(np.median(span)) >= 6.0 and float(np.median(count)) >= 3) or scattered:
             params.append("bdur_spark_deg_per_10deg")
@@ -97,7 +98,7 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         Gauss-Newton iterations of the base calibration.
     overrides : dict {"section.field": value}, optional
         Spec values fixed by an earlier calibration step (e.g. the airflow match of
-        ``engine_model.calibrate``); they become ``spec.*`` columns of every simulated row and the
+        ``engine_model.calibration``); they become ``spec.*`` columns of every simulated row and the
         effects act on top of them.
     error_model : str
         The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).

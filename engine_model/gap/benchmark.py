@@ -2,7 +2,7 @@
 
 For every effect of the library, at a few magnitudes (fractions of its
 realistic magnitude) and several noise seeds, the virtual bench
-(:class:`engine_model.virtual_bench.VirtualBench`, hidden burn law) measures a
+(:class:`engine_model.bench.virtual.VirtualBench`, hidden burn law) measures a
 small realistic DOE with that effect present; the base model (without the
 effect) is calibrated and the diagnosis names an effect or says that none
 explains the gap.  Plus the null case (no effect withheld) and an
@@ -22,7 +22,6 @@ re-simulation with the named effect at its fitted parameters.
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from typing import Callable, Sequence
@@ -30,13 +29,15 @@ from typing import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from .. import doe
-from ..prepare import SolverSettings
-from ..spec import EngineSpec, default_spec
-from .covariance import DEFAULT_ERROR_MODEL
-from .diagnose import diagnose
-from .effects import EFFECTS, get_effect
-from .linear import BaseModel, calibrate_base, linearise
+from engine_model import doe
+from engine_model.sim.prepare import SolverSettings
+from engine_model.spec import EngineSpec, default_spec
+from engine_model.gap.covariance import DEFAULT_ERROR_MODEL
+from engine_model.gap.diagnose import diagnose
+from engine_model.effects import EFFECTS, get_effect
+from engine_model.gap.bench_procedure import BENCH_SOLVER, knock_backoff, measure_with_backoff
+from engine_model.gap.design import discrimination_plan
+from engine_model.gap.linear import BaseModel, calibrate_base, linearise
 
 __all__ = ["BENCHMARK_COLUMNS", "benchmark_plan", "run_benchmark", "summarise_benchmark", "ool_bump",
            "BENCH_SOLVER", "OOL_EFFECT", "DEFAULT_DESIGN"]
@@ -45,9 +46,6 @@ __all__ = ["BENCHMARK_COLUMNS", "benchmark_plan", "run_benchmark", "summarise_be
 BENCHMARK_COLUMNS = ("effect_withheld", "magnitude", "seed", "effect_named", "top1_correct", "top3_correct",
                      "gap_before", "gap_after", "gap_reduction_pct")
 
-#: Solver of the benchmark's truth and model (the same for both, so the comparison is about physics, not
-#: discretisation; 1 deg steps are 2x cheaper than 0.5 deg and change outputs < 1 %).
-BENCH_SOLVER = SolverSettings(step_deg=1.0)
 
 #: Design of ``run_benchmark`` and ``mbc gap-benchmark`` when none is given: the model-discrimination plan
 #: (``mbc gap-plan``), chosen from the base model alone.  With the burn-scatter error model and the curved
@@ -85,59 +83,25 @@ def ool_bump(measured: pd.DataFrame, amplitude: float = OOL_AMPLITUDE, center_rp
     return out
 
 
-#: Benchmark DOE designs: ``"sobol"`` (default: scattered points, one spark each), ``"sweep"`` (the
-#: paper's bench procedure: a spark sweep per operating point) and ``"discriminating"`` (the points of a
-#: candidate pool on which the library's effects differ most, :func:`engine_model.gap.design.discrimination_plan`).  The sweep design was tried to separate the
-#: torque-loss effects and measured worse (docs/sections/gap.md), so it is an option, not the default.
-DESIGNS = ("sweep", "sobol", "discriminating")
-
-#: Spark sweep of the benchmark DOE: steps per operating point and their spacing [deg CA].  4 steps of 4 deg
-#: span 12 deg up to the MBT prior (or the knock back-off), the paper's "start 10-15 deg retarded, advance to
-#: MBT or knock" [P].
-SWEEP_STEPS = 4
-SWEEP_STEP_DEG = 4.0
-
-
-def _knock_backoff(ops: pd.DataFrame, spark_top: np.ndarray, ev: Callable, knock_target: float,
-                   retards: Sequence[float]) -> np.ndarray:
-    """Retard [deg] from ``spark_top`` an operator backs off to where the model (prior burn) predicts no knock."""
-    frames = []
-    for k, ret in enumerate(retards):
-        p = doe.with_combustion(ops.assign(spark_deg_btdc=spark_top - ret))
-        p["point_id"] = p["point_id"].astype(str) + f"#r{k}"
-        frames.append(p)
-    res = ev(pd.concat(frames, ignore_index=True))
-    ki = pd.to_numeric(res["knock_index"], errors="coerce").to_numpy(float).reshape(len(retards), len(ops))
-    chosen = np.full(len(ops), float(retards[-1]))
-    for i in range(len(ops)):
-        okk = np.flatnonzero(ki[:, i] < knock_target)
-        if okk.size:
-            chosen[i] = retards[int(okk[0])]
-    return chosen
+#: Benchmark DOE designs: ``"discriminating"`` (the points of a candidate pool on which the library's effects
+#: differ most, :func:`engine_model.gap.design.discrimination_plan`) and ``"sobol"`` (scattered points, one spark
+#: each; cheaper to plan, used by the CI test).
+DESIGNS = ("discriminating", "sobol")
 
 
 def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
                    evaluate: Callable | None = None, solver: SolverSettings = BENCH_SOLVER,
                    knock_target: float = 0.85, retards: Sequence[float] = (0.0, 4.0, 8.0, 12.0, 16.0),
-                   design: str = "sobol", sweep_steps: int = SWEEP_STEPS,
-                   sweep_step_deg: float = SWEEP_STEP_DEG) -> pd.DataFrame:
-    """A realistic small dyno DOE of ``n`` points over 6000-12500 rpm x 30-100 % throttle.
+                   design: str = DEFAULT_DESIGN) -> pd.DataFrame:
+    """A realistic small dyno DOE of ``n`` points.
 
-    ``design="sweep"``: ``n // sweep_steps`` operating points (scrambled Sobol' over speed x
-    throttle: one point per speed stratum), each run as a spark sweep of ``sweep_steps`` sparks
-    ``sweep_step_deg`` apart, from retarded up to the MBT prior -- or, where the model (prior burn)
-    predicts a knock index above ``knock_target`` there, up to the spark an operator backs off to in
-    steps of 4 deg.  This is the paper's bench procedure (start retarded, advance to MBT or knock); the
-    curvature of torque over spark pins the burn duration, which a scattered design leaves free to trade
-    against the torque level.  Steps that still knock on the bench are aborted there (flagged).
-
-    ``design="discriminating"``: ``n`` points chosen from a 160-point candidate pool (5000-12500 rpm,
-    spark 0-8 deg below the MBT prior, same knock back-off) to maximise the smallest model-discrimination
+    ``design="discriminating"`` (default): ``n`` points chosen from a 160-point candidate pool (5000-12500 rpm,
+    spark 0-8 deg below the MBT prior, knock back-off) to maximise the smallest model-discrimination
     distance between the library's effects (:func:`engine_model.gap.design.discrimination_plan`; base
     model only, no bench data).
 
-    ``design="sobol"`` (default): ``n`` Sobol' points, spark = MBT prior minus 0-6 deg, retarded in 4 deg steps
-    where the model predicts knock (the earlier benchmark design).
+    ``design="sobol"``: ``n`` Sobol' points over 6000-12500 rpm x 30-100 % throttle, spark = MBT prior minus
+    0-6 deg, retarded in 4 deg steps where the model (prior burn) predicts a knock index above ``knock_target``.
 
     Returns
     -------
@@ -145,7 +109,7 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
         ``point_id, speed_rpm, throttle_pct, spark_deg_btdc, lambda`` + ``op_id`` (operating point of the
         row), ``knock_retard_deg`` (back-off from the MBT prior's top of the sweep) and design columns.
     """
-    from ..simulate import simulate
+    from engine_model.sim.simulate import simulate
 
     if design not in DESIGNS:
         raise ValueError(f"benchmark_plan: design {design!r} unknown; valid: {list(DESIGNS)}")
@@ -153,96 +117,22 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     ev = evaluate or (lambda p: simulate(spec, p, solver))
     bounds = {"speed_rpm": (6000.0, 12500.0), "throttle_pct": (30.0, 100.0)}
     if design == "discriminating":
-        from .design import discrimination_plan
-
         plan, _ = discrimination_plan(n, spec, ev, seed=seed)
         return plan
-    if design == "sobol":
-        plan = doe.sobol(n, bounds=bounds, seed=seed)
-        rng = np.random.default_rng(seed + 11)
-        spark0 = plan["spark_deg_btdc"].to_numpy(float) - rng.uniform(0.0, 6.0, len(plan))
-        chosen = _knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
-        plan["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
-        plan["knock_retard_deg"] = chosen
-        plan["op_id"] = plan["point_id"]
-        return plan
-    if not (isinstance(sweep_steps, (int, np.integer)) and sweep_steps >= 3):
-        raise ValueError(f"benchmark_plan: sweep_steps = {sweep_steps!r} must be an integer >= 3 (a curvature)")
-    if not sweep_step_deg > 0:
-        raise ValueError(f"benchmark_plan: sweep_step_deg = {sweep_step_deg!r} must be > 0")
-    n_ops = n // sweep_steps
-    if n_ops < 2:
-        raise ValueError(f"benchmark_plan: n = {n} gives fewer than 2 operating points of {sweep_steps} sparks")
-    ops = doe.sobol(n_ops, bounds=bounds, seed=seed)
-    top = ops["spark_deg_btdc"].to_numpy(float)
-    chosen = _knock_backoff(ops, top, ev, knock_target, retards)
-    rows = []
-    for i, op in ops.iterrows():
-        for k in range(sweep_steps):
-            ret = chosen[i] + sweep_step_deg * (sweep_steps - 1 - k)
-            rows.append({"point_id": f"{op['point_id']}-s{k}", "speed_rpm": op["speed_rpm"],
-                         "throttle_pct": op["throttle_pct"], "spark_deg_btdc": round(top[i] - ret, 1),
-                         "lambda": op["lambda"], "op_id": op["point_id"], "sweep_step": k,
-                         "knock_retard_deg": chosen[i], "design": "spark_sweep"})
-    return pd.DataFrame(rows)
+    plan = doe.sobol(n, bounds=bounds, seed=seed)
+    rng = np.random.default_rng(seed + 11)
+    spark0 = plan["spark_deg_btdc"].to_numpy(float) - rng.uniform(0.0, 6.0, len(plan))
+    chosen = knock_backoff(plan.assign(spark_deg_btdc=spark0), spark0, ev, knock_target, retards)
+    plan["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
+    plan["knock_retard_deg"] = chosen
+    plan["op_id"] = plan["point_id"]
+    return plan
 
 
-#: Operator's knock back-off on the bench: a point that knocks is re-run this much later [deg CA], at most
-#: :data:`BENCH_BACKOFF_STEPS` times (the plan's own back-off steps of 4 deg; the paper's sweeps stop "at
-#: MBT or knock" [P]).  Without it the truth bench lost 7 of the 32 points (all below 7800 rpm, where
-#: blow-by, knock retard and the combustion losses differ most from a driveline loss) to knock aborts.
-BENCH_BACKOFF_DEG = 4.0
-BENCH_BACKOFF_STEPS = 3
 
 
-def backoff_id(point_id: str, retard_deg: float) -> str:
-    """Point id of a plan point re-run ``retard_deg`` later on the bench (``'<id>~r<deg>'``)."""
-    return f"{point_id}~r{retard_deg:g}"
 
 
-def measure_with_backoff(bench, plan: pd.DataFrame, evaluate: Callable, step_deg: float = BENCH_BACKOFF_DEG,
-                         max_steps: int = BENCH_BACKOFF_STEPS) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """Run ``plan`` on ``bench`` as an operator does: a point aborted for knock is re-run ``step_deg`` later.
-
-    The model-based back-off of :func:`benchmark_plan` cannot know the engine's real knock limit; on the
-    bench the operator retards a knocking point until it runs (at most ``max_steps`` times) and logs the
-    spark it ran at.  A point that still knocks stays flagged (``knock_abort``).
-
-    Parameters
-    ----------
-    bench : VirtualBench
-        Anything with ``measure(plan, evaluate)``.
-    plan : DataFrame
-        Needs ``point_id`` and ``spark_deg_btdc``.
-    evaluate : callable
-
-    Returns
-    -------
-    plan_run : DataFrame
-        The plan as run: backed-off points with the later spark and the id :func:`backoff_id`, and
-        ``bench_backoff_deg`` (0 where the plan's spark ran).
-    measured : DataFrame
-        The bench rows, same order and ids as ``plan_run``.
-    """
-    run = plan.reset_index(drop=True).copy()
-    run["point_id"] = run["point_id"].astype(str)
-    orig_ids = run["point_id"].to_numpy().copy()
-    run["bench_backoff_deg"] = 0.0
-    meas = bench.measure(run, evaluate).reset_index(drop=True)
-    for k in range(1, max_steps + 1):
-        knock = (meas["status"].astype(str) == "knock_abort").to_numpy()
-        if not knock.any():
-            break
-        idx = np.flatnonzero(knock)
-        run.loc[idx, "spark_deg_btdc"] = run.loc[idx, "spark_deg_btdc"].to_numpy(float) - step_deg
-        run.loc[idx, "bench_backoff_deg"] = k * step_deg
-        run.loc[idx, "point_id"] = [backoff_id(orig_ids[i], k * step_deg) for i in idx]
-        redo = bench.measure(run.loc[idx].reset_index(drop=True), evaluate)
-        redo.index = idx
-        meas = meas.drop(index=idx)
-        meas = pd.concat([meas, redo]).sort_index()
-        meas = meas.reset_index(drop=True)
-    return run, meas
 
 
 @dataclass
@@ -268,8 +158,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
                   base: BaseModel | None = None, base_iterations: int = 3, k_folds: int = 5, n_noise: int = 200,
                   verify: bool = True, candidates: Sequence[str] | None = None,
                   progress: Callable[[str], None] | None = None, design: str = DEFAULT_DESIGN,
-                  seed_start: int = 0, bench_backoff: bool = True, plan: pd.DataFrame | None = None,
-                  error_model: str = DEFAULT_ERROR_MODEL, speed_curvature: bool = True) -> dict:
+                  seed_start: int = 0, plan: pd.DataFrame | None = None,
+                  error_model: str = DEFAULT_ERROR_MODEL) -> dict:
     """Run the withheld-effect benchmark.
 
     Parameters
@@ -284,10 +174,10 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     n_points : int
         DOE size (simulated bench points).
     design : str
-        ``"discriminating"`` (default), ``"sobol"`` or ``"sweep"``, see :func:`benchmark_plan`.
+        ``"discriminating"`` (default) or ``"sobol"``, see :func:`benchmark_plan`.
     base : BaseModel, optional
-        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (with
-        ``speed_curvature``).
+        Default :func:`engine_model.gap.api.choose_base` of the null case's plan as run on the bench (the
+        burn's speed curvature where the plan carries it).
     evaluate : callable(plan) -> results, optional
         Default: in-process ``simulate`` with ``solver``.
     verify : bool
@@ -301,13 +191,11 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         ``benchmark_plan(n_points, plan_seed, design=design)``.
     error_model : str
         The diagnosis' structural error model (:data:`engine_model.gap.covariance.ERROR_MODELS`).
-    speed_curvature : bool
-        Let the base carry the burn's speed curvature where the design supports it (``choose_base``; on by
-        default since 2026-11-25, with the discriminating design and the burn-scatter error model).
-    bench_backoff : bool
-        The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each
-        trial is diagnosed on the plan as its engine ran it (one linearisation of the union of these
-        plans).  False: knocking points are lost (the earlier benchmark).
+
+    Notes
+    -----
+    The bench operator re-runs points that knock 4 deg later (:func:`measure_with_backoff`); each trial is
+    diagnosed on the plan as its engine ran it (one linearisation of the union of these plans).
 
     Returns
     -------
@@ -317,11 +205,11 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
         union of the plans as run), per case (``(effect, magnitude)`` keys) ``plans`` as run, noiseless
         ``truth`` and ``linearisations``, and ``diagnoses`` per ``(effect, magnitude, seed)``.
     """
-    from ..simulate import simulate
-    from ..virtual_bench import NoiseModel, VirtualBench, apply_noise
-    from ..burnlaw import BurnLaw
+    from engine_model.sim.simulate import simulate
+    from engine_model.bench.virtual import NoiseModel, VirtualBench, apply_noise
+    from engine_model.bench.burnlaw import BurnLaw
 
-    from .api import choose_base
+    from engine_model.gap.api import choose_base
 
     say = progress or (lambda s: None)
     spec = default_spec() if spec is None else spec
@@ -343,10 +231,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     law = BurnLaw()
     for c in cases:
         vb = VirtualBench(spec=spec, law=law, effects=c.effects or None, noise=NoiseModel.none(), solver=solver)
-        if bench_backoff:
-            plan_c, m = measure_with_backoff(vb, plan, ev)
-        else:
-            plan_c, m = plan, vb.measure(plan, ev)
+        plan_c, m = measure_with_backoff(vb, plan, ev)
         if c.effect == OOL_EFFECT:
             m = ool_bump(m)
         truth[(c.effect, c.magnitude)] = m
@@ -358,7 +243,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     null = truth[("none", 0.0)]
     null_plan = plans[("none", 0.0)]
     # the base the data as run can carry (the bench back-off spreads the sparks)
-    base = choose_base(null_plan, speed_curvature) if base is None else base
+    base = choose_base(null_plan, speed_curvature=True) if base is None else base
     say(f"base: {base.params}")
     theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
     t_cal = time.perf_counter() - t0 - t_truth
@@ -421,8 +306,8 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
 
 def _verify(plans, lins, truth, diags, names, seed, ev, spec) -> list[dict]:
     """Nonlinear re-simulation of the named effect at its fitted parameters (``seed``, magnitude 1)."""
-    from .effects import apply_effects, check_effects, post_effects
-    from .linear import model_outputs
+    from engine_model.effects import apply_effects, check_effects, post_effects
+    from engine_model.gap.linear import model_outputs
 
     jobs = []
     for e in names:

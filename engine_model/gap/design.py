@@ -45,12 +45,14 @@ from typing import Callable, Sequence
 import numpy as np
 import pandas as pd
 
-from .. import doe
-from ..spec import EngineSpec, default_spec
-from .covariance import BURN_SCATTER_DEG, whiten_blocks   # the scatter the plan guards against, shared with diagnose
-from .diagnose import MODEL_ERROR, UNCERTAINTY, sigma_of
-from .effects import EFFECTS, get_effect
-from .linear import SWEEP_BASE, BaseModel, Linearisation, linearise
+from engine_model import doe
+from engine_model.spec import EngineSpec, default_spec
+from engine_model.gap.covariance import BURN_SCATTER_DEG, whiten_blocks   # the scatter the plan guards against, shared with diagnose
+from engine_model.gap.covariance import MODEL_ERROR
+from engine_model.gap.residuals import UNCERTAINTY, sigma_of
+from engine_model.effects import EFFECTS, get_effect
+from engine_model.gap.bench_procedure import BENCH_SOLVER, knock_backoff
+from engine_model.gap.linear import SWEEP_BASE, BaseModel, Linearisation, linearise
 
 __all__ = ["DesignProblem", "design_problem", "pair_distances", "select_discriminating", "candidate_pool",
            "discrimination_plan", "DESIGN_OUTPUTS", "CRITERIA"]
@@ -247,7 +249,6 @@ def candidate_pool(n: int = 160, seed: int = 0, spec: EngineSpec | None = None, 
                    retards: Sequence[float] = (0.0, 4.0, 8.0, 12.0, 16.0)) -> pd.DataFrame:
     """Candidate bench points: Sobol' over speed x throttle, spark ``spark_below_mbt`` below the MBT prior,
     retarded in 4 deg steps where the model (prior burn) predicts knock (as :func:`benchmark_plan`)."""
-    from .benchmark import _knock_backoff
 
     spec = default_spec() if spec is None else spec
     if evaluate is None:
@@ -255,7 +256,7 @@ def candidate_pool(n: int = 160, seed: int = 0, spec: EngineSpec | None = None, 
     pool = doe.sobol(n, bounds={"speed_rpm": speed_rpm, "throttle_pct": throttle_pct}, seed=seed)
     rng = np.random.default_rng(seed + 17)
     spark0 = pool["spark_deg_btdc"].to_numpy(float) - rng.uniform(*spark_below_mbt, len(pool))
-    chosen = _knock_backoff(pool.assign(spark_deg_btdc=spark0), spark0, evaluate, knock_target, retards)
+    chosen = knock_backoff(pool.assign(spark_deg_btdc=spark0), spark0, evaluate, knock_target, retards)
     pool["spark_deg_btdc"] = np.round(spark0 - chosen, 1)
     pool["knock_retard_deg"] = chosen
     pool["point_id"] = [f"disc-{i:04d}" for i in range(len(pool))]
@@ -299,8 +300,7 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
     info : dict
         ``min_d2`` and ``closest`` pair, ``pairs``, the pool, its linearisation and its simulations.
     """
-    from ..simulate import simulate
-    from .benchmark import BENCH_SOLVER
+    from engine_model.sim.simulate import simulate
 
     spec = default_spec() if spec is None else spec
     ev = evaluate or (lambda p: simulate(spec, p, BENCH_SOLVER))

@@ -5,9 +5,9 @@ simulated outputs and their sensitivities to
 
 * the *base calibration* parameters (:class:`BaseModel`): a smooth global
   combustion law (BDUR10-90 and Wiebe m as low-order functions of speed, load
-  and spark over the DOE prior of :func:`engine_model.doe.combustion_estimate`)
+  and spark over the DOE prior of :func:`engine_model.priors.combustion_estimate`)
   and optionally an airflow-matching factor;
-* every parameter of every candidate effect (:mod:`engine_model.gap.effects`).
+* every parameter of every candidate effect (:mod:`engine_model.effects`).
 
 :func:`linearise` gets them all from ONE batch of simulations through an
 ``evaluate(plan) -> results`` callable (in-process ``simulate`` or the Dask
@@ -31,16 +31,16 @@ proportional torque deficit.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
 import pandas as pd
 
-from .. import doe
-from ..spec import EngineSpec, default_spec
-from .effects import ETA_TRANS_BASE, EFFECTS, apply_effects, check_effects, get_effect, post_effects
+from engine_model import priors
+from engine_model.spec import EngineSpec, default_spec
+from engine_model.gap.residuals import align_measured, sigma_of
+from engine_model.effects import ETA_TRANS_BASE, EFFECTS, apply_effects, check_effects, get_effect, post_effects
 
 __all__ = ["BaseParam", "BaseModel", "BASE_PARAMS", "COMBUSTION_BASE", "SWEEP_BASE", "CURVED_BASE", "Linearisation", "linearise", "model_outputs",
            "MODEL_OUTPUTS", "calibrate_base"]
@@ -148,10 +148,10 @@ class BaseModel:
         n = df["speed_rpm"].to_numpy(float)
         t = df["throttle_pct"].to_numpy(float)
         s = df["spark_deg_btdc"].to_numpy(float)
-        bdur0, m0 = doe.combustion_estimate(n, t)
+        bdur0, m0 = priors.combustion_estimate(n, t)
         bdur0, m0 = np.atleast_1d(bdur0), np.atleast_1d(m0)
         dn = (n - self.speed_ref_rpm) / 1000.0
-        ds = (s - np.atleast_1d(doe.spark_estimate(n, t))) / 10.0
+        ds = (s - np.atleast_1d(priors.spark_estimate(n, t))) / 10.0
         bdur = bdur0 + th.get("bdur_offset_deg", 0.0) + th.get("bdur_speed_deg_per_krpm", 0.0) * dn \
             + th.get("bdur_load_deg", 0.0) * (1.0 - t / 100.0) + th.get("bdur_spark_deg_per_10deg", 0.0) * ds \
             + th.get("bdur_speed2_deg_per_krpm2", 0.0) * dn**2
@@ -277,7 +277,7 @@ def _ok_mask(res: pd.DataFrame) -> tuple[np.ndarray, list[str]]:
 def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFrame],
               base: BaseModel = BaseModel(), effects: Sequence[str] | None = None, theta: dict | None = None,
               spec: EngineSpec | None = None, eta_base: float = ETA_TRANS_BASE,
-              outputs: Sequence[str] = MODEL_OUTPUTS, include_base: bool = True) -> Linearisation:
+              outputs: Sequence[str] = MODEL_OUTPUTS) -> Linearisation:
     """Reference outputs and finite-difference Jacobian from one ``evaluate`` batch.
 
     Parameters
@@ -295,8 +295,6 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
     eta_base : float
         Transmission efficiency of the base model [-].
     outputs : sequence of str
-    include_base : bool
-        Also step the base parameters.
 
     Returns
     -------
@@ -310,10 +308,9 @@ def linearise(points: pd.DataFrame, evaluate: Callable[[pd.DataFrame], pd.DataFr
     th.update(theta or {})
     ref = base.plan(pts, th, spec)
     cases: list[tuple[str, str, float, pd.DataFrame, dict | None]] = [("ref", "", 0.0, ref, None)]
-    if include_base:
-        for p in base.params:
-            step = BASE_PARAMS[p].step
-            cases.append(("base", p, step, base.plan(pts, {**th, p: th[p] + step}, spec), None))
+    for p in base.params:
+        step = BASE_PARAMS[p].step
+        cases.append(("base", p, step, base.plan(pts, {**th, p: th[p] + step}, spec), None))
     for e in names:
         eff = get_effect(e)
         for prm in eff.params:
@@ -411,7 +408,6 @@ def calibrate_base(points: pd.DataFrame, measured: pd.DataFrame, evaluate, base:
     history : list of dict
         Per iteration: theta, chi2 per observation, simulations.
     """
-    from .diagnose import align_measured, sigma_of
 
     sigma_fn = sigma_of if sigma_fn is None else sigma_fn
     theta = {p: 0.0 for p in base.params}

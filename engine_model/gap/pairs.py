@@ -34,8 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .diagnose import GapDiagnosis, _heldout_cols, _solve
-from .effects import get_effect
+from engine_model.gap.diagnose import GapDiagnosis
+from engine_model.gap.fitting import heldout_columns, solve_bounded
+from engine_model.effects import get_effect
 
 __all__ = ["PairSearch", "best_pair", "NO_PAIR"]
 
@@ -73,11 +74,11 @@ def _pair_cols(prob, a: str, b: str) -> list[int]:
     return prob.base_cols + prob.cand_cols[a] + prob.cand_cols[b]
 
 
-def _heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray) -> np.ndarray:
+def heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray) -> np.ndarray:
     """Held-out chi2 of the columns ``cols`` for many residual vectors at once, without parameter bounds.
 
     For a fixed design the K-fold held-out residuals are linear in the data: on fold f they are
-    ``r_test - A_test (A_train' A_train + lam I)^-1 A_train' r_train`` (the ridge of ``diagnose._solve``).
+    ``r_test - A_test (A_train' A_train + lam I)^-1 A_train' r_train`` (the ridge of ``diagnose.solve_bounded``).
     The pure-noise Monte Carlo uses this closed form (one small solve per fold and column set instead
     of one per draw).  Bounds are left out: pure-noise fits lie well inside the documented ranges, and
     where one would not, the unbounded fit removes more noise, so the thresholds err on the high side.
@@ -165,9 +166,9 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         thr, thr_x = noise_cache[key]
     else:
         e = np.random.default_rng(seed + 15485863).standard_normal((prob.r.size, n_noise))
-        h0 = _heldout_chi2_linear(prob, prob.base_cols, folds, e)
-        h1 = np.min([_heldout_chi2_linear(prob, prob.base_cols + prob.cand_cols[c], folds, e) for c in cands], axis=0)
-        h2 = np.min([_heldout_chi2_linear(prob, _pair_cols(prob, a, b), folds, e) for a, b in pairs], axis=0)
+        h0 = heldout_chi2_linear(prob, prob.base_cols, folds, e)
+        h1 = np.min([heldout_chi2_linear(prob, prob.base_cols + prob.cand_cols[c], folds, e) for c in cands], axis=0)
+        h2 = np.min([heldout_chi2_linear(prob, _pair_cols(prob, a, b), folds, e) for a, b in pairs], axis=0)
         thr = float(np.quantile(h0 - h2, 1.0 - alpha))
         thr_x = float(np.quantile(h1 - h2, 1.0 - alpha))
         if noise_cache is not None:
@@ -182,8 +183,8 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
     rows = []
     for a, b in pairs:
         cols = _pair_cols(prob, a, b)
-        ho = _heldout_cols(prob, cols, folds)[0]
-        x = _solve(prob.a[:, cols], prob.r, prob.lo[cols], prob.hi[cols])
+        ho = heldout_columns(prob, cols, folds)[0]
+        x = solve_bounded(prob.a[:, cols], prob.r, prob.lo[cols], prob.hi[cols])
         txt, bound = _params(lin, prob, cols, x)
         red = 100.0 * (ho0 - ho) / excess0 if excess0 > 0 else 0.0
         rows.append({"effect_a": a, "effect_b": b, "params": txt, "heldout_chi2": ho,

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..io import write_parquet, write_text
-from ..report import write_report
-from .diagnose import GapDiagnosis
+from engine_model.io import write_parquet, write_text
+from engine_model.report import write_report
+from engine_model.gap.diagnose import GapDiagnosis
 
 __all__ = ["write_gap_report", "plot_residual_map", "plot_chain", "plot_ranking", "plot_before_after",
            "write_benchmark_report"]
@@ -183,8 +183,8 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
 
 def write_benchmark_report(result: dict, out) -> dict:
     """``gap_benchmark.csv`` (the issue's columns), details, summary and a Markdown/HTML page in ``<out>/gap/``."""
-    from ..io import write_csv
-    from .benchmark import BENCHMARK_COLUMNS
+    from engine_model.io import write_csv
+    from engine_model.gap.benchmark import BENCHMARK_COLUMNS
 
     folder = (Path(out) / "gap").resolve()
     folder.mkdir(parents=True, exist_ok=True)

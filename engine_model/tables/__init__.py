@@ -1,1 +1,21 @@
-"""ECU tables: export to and import from the files engine-management software reads."""
+"""ECU tables: spark advance (MBT or knock-limited), injection time, target lambda, and their export.
+
+    grid        EcuGrid (throttle % x rpm breakpoints), LambdaTable, parse_breakpoints
+    settings    MapSettings, MapResult, PriorModel, load_model
+    search      the per-cell spark search (batched over all cells)
+    build       build_maps(spec, model, grid, evaluate=...) -> MapResult
+    smoothing   bounded-curvature smoothing of a table
+    injection   injector pulse width from airflow and lambda
+    export      long-form Parquet, wide CSV, heatmaps (write_maps)
+"""
+
+from engine_model.tables.build import build_maps
+from engine_model.tables.export import TABLES, long_form, write_maps
+from engine_model.tables.grid import EcuGrid, LambdaTable, parse_breakpoints
+from engine_model.tables.injection import injection_time_ms
+from engine_model.tables.settings import MapResult, MapSettings, PriorModel, load_model
+from engine_model.tables.smoothing import second_differences, smooth_table
+
+__all__ = ["EcuGrid", "LambdaTable", "MapResult", "MapSettings", "PriorModel", "TABLES", "build_maps",
+           "injection_time_ms", "load_model", "long_form", "parse_breakpoints", "second_differences",
+           "smooth_table", "write_maps"]

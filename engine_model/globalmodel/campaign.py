@@ -1,0 +1,266 @@
+"""The virtual-bench campaign: plan, measure, identify, fit the global model, and score it against the truth.
+
+    screened D-optimal operating points -> spark sweep at each -> virtual bench measures them
+      -> joint spark-sweep identification of (BDUR10-90, m) per operating point
+      -> global map-wide model fitted on the identified points
+      -> scored against the bench's hidden burn law: at the identified points, on the runnable hold-out grid
+      -> learning curve of DOE designs at the identification error measured here
+
+This is the study a team would run on a real bench with the plan of
+:func:`engine_model.calibration.sweeps.choose_operating_points`; on the
+virtual bench the hidden burn law is known, so every step can be scored.  It
+needs two kinds of simulation: the bench's own (its truth engine, through
+:meth:`VirtualBench.measure`) and the identification sweeps of the model; both
+go through ``make_evaluate(label, solver)``, which returns an ``evaluate(plan)
+-> results`` callable (in-process :func:`engine_model.simulate` by default;
+the flows route it to Dask).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from engine_model import priors
+from engine_model.bench.burnlaw import BurnLaw
+from engine_model.bench.virtual import NoiseModel, VirtualBench
+from engine_model.calibration.identify import identification_plan
+from engine_model.calibration.sweeps import choose_operating_points, identify_sweeps, sweep_plan
+from engine_model.doe import QUICK_SOLVER, feasibility
+from engine_model.globalmodel import learning
+from engine_model.globalmodel.mapmodel import MapModel, fit_map_model
+from engine_model.sim.prepare import SolverSettings
+from engine_model.spec import EngineSpec
+
+__all__ = ["CampaignSettings", "CampaignResult", "run_campaign", "identification_error", "holdout_error",
+           "MIN_IDENTIFIED"]
+
+#: Fewest identified operating points a global model is fitted on (one spark sweep each).
+MIN_IDENTIFIED = 6
+
+
+@dataclass(frozen=True)
+class CampaignSettings:
+    """How the virtual-bench campaign runs.
+
+    Attributes
+    ----------
+    eta_trans : float
+        Transmission efficiency [-] of the virtual bench and of the identification.
+    step_deg : float
+        Crank-angle step of the bench measurements and the identification [deg].
+    doe_points : int
+        Operating points (one spark sweep each), D-optimal over throttle x speed from screened candidates.
+    spark_offsets : tuple of float
+        Sparks of each sweep relative to the MBT prior [deg].
+    doe_bounds : dict, optional
+        Throttle / speed bounds of the candidate operating points.
+    doe_seed : int
+        Seed of the design and of the bench's noise.
+    ident_grid : (int, int)
+        BDUR10-90 x m grid of the identification sweep at each bench point.
+    learning_sizes, learning_seeds : tuple of int
+        Learning curve: design sizes and seeds.
+    holdout : dict
+        Keyword arguments of :func:`engine_model.globalmodel.learning.holdout_grid`.
+    """
+
+    eta_trans: float = 0.95
+    step_deg: float = 0.5
+    doe_points: int = 10
+    spark_offsets: tuple = (-15, -10, -5, 0, 5)
+    doe_bounds: dict = field(default_factory=dict)
+    doe_seed: int = 0
+    ident_grid: tuple = (6, 6)
+    learning_sizes: tuple = (12, 16, 24, 32, 48, 64)
+    learning_seeds: tuple = (0, 1, 2)
+    holdout: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.doe_points < MIN_IDENTIFIED:
+            raise ValueError(f"CampaignSettings.doe_points = {self.doe_points!r}: at least {MIN_IDENTIFIED} "
+                             "operating points are needed (one spark sweep each)")
+        if not 0.5 <= self.eta_trans <= 1.0:
+            raise ValueError(f"CampaignSettings.eta_trans = {self.eta_trans!r} must lie in [0.5, 1]")
+
+
+@dataclass
+class CampaignResult:
+    """Everything the campaign produced (tables are DataFrames; scores are plain dicts)."""
+
+    operating_points: pd.DataFrame
+    plan: pd.DataFrame
+    measured: pd.DataFrame
+    identified: pd.DataFrame
+    identification_error: dict
+    fallback: str
+    model: MapModel
+    holdout_status: pd.DataFrame
+    holdout_error: dict
+    learning_curve: pd.DataFrame
+    learning_summary: pd.DataFrame
+    noise_used: tuple[float, float]
+
+    def lines(self, settings: CampaignSettings) -> list[str]:
+        """A short account in words (report and console)."""
+        meas, ide, held = self.measured, self.identification_error, self.holdout_error
+        out = [f"Virtual bench: {len(self.operating_points)} operating points (D-optimal over throttle x speed from "
+               f"screened candidates, seed {settings.doe_seed}) x spark offsets {list(settings.spark_offsets)} deg = "
+               f"{len(meas)} bench points; status {meas['status'].value_counts().to_dict()}.",
+               f"Joint spark-sweep identification at {ide['points']} of {ide['of']} operating points against the "
+               f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
+               f"m RMSE {ide['m_rmse']:.2f} (bias {ide['m_bias']:+.2f}).",
+               f"Global model (chosen per output by K-fold CV: {self.model.chosen_}); error against the hidden law "
+               f"on the {held['points']} runnable points of the {held['of']}-point hold-out grid: BDUR10-90 "
+               f"{held['bdur_rmse_deg']:.2f} deg, m {held['m_rmse']:.2f}."]
+        if self.fallback:
+            out.append(self.fallback)
+        sb, sm = self.noise_used
+        out.append(f"Learning curve: identification noise {sb:.2f} deg / {sm:.2f} (as measured above), designs "
+                   "against a full grid.")
+        return out
+
+
+def _in_process(spec: EngineSpec):
+    from engine_model.sim.simulate import simulate
+
+    def make(label: str, solver: SolverSettings):
+        return lambda plan: simulate(spec, plan, solver)
+    return make
+
+
+def identification_error(ident: pd.DataFrame, law: BurnLaw) -> tuple[pd.DataFrame, dict]:
+    """Add the hidden law's (BDUR10-90, m) to an identification table and score the identified points.
+
+    Returns the table with ``bdur_10_90_deg_truth, wiebe_m_truth`` and ``{points, of, bdur_rmse_deg,
+    bdur_bias_deg, m_rmse, m_bias}`` over the points that met the identification's tolerances.
+    """
+    ident = ident.copy()
+    ran = ident[np.isfinite(ident["bdur_10_90_deg"].to_numpy(float))].index
+    truth = law.predict(ident.loc[ran, ["throttle_pct", "speed_rpm", "spark_deg_btdc", "lambda"]])
+    ident["bdur_10_90_deg_truth"] = np.nan
+    ident["wiebe_m_truth"] = np.nan
+    ident.loc[ran, "bdur_10_90_deg_truth"] = truth["bdur_10_90_deg"].to_numpy()
+    ident.loc[ran, "wiebe_m_truth"] = truth["wiebe_m"].to_numpy()
+    good = ident[ident["fit_ok"].astype(bool)] if "fit_ok" in ident.columns else ident
+    err_b = good["bdur_10_90_deg"] - good["bdur_10_90_deg_truth"]
+    err_m = good["wiebe_m"] - good["wiebe_m_truth"]
+    return ident, {"points": int(len(good)), "of": int(len(ident)),
+                   "bdur_rmse_deg": float(np.sqrt(np.mean(err_b ** 2))), "bdur_bias_deg": float(err_b.mean()),
+                   "m_rmse": float(np.sqrt(np.mean(err_m ** 2))), "m_bias": float(err_m.mean())}
+
+
+def training_points(ident: pd.DataFrame) -> tuple[pd.DataFrame, str]:
+    """The identified points a global model is fitted on, and a note when tolerance misses had to be used.
+
+    Points within the identification's tolerances (``fit_ok``) are used; with fewer than
+    :data:`MIN_IDENTIFIED` of them, every finite estimate is (flagged in the note).  Fewer than that in
+    all is a RuntimeError naming the counts.
+    """
+    good = ident[ident["fit_ok"].astype(bool)] if "fit_ok" in ident.columns else ident
+    note = ""
+    if len(good) < MIN_IDENTIFIED:
+        finite = ident[np.isfinite(ident["bdur_10_90_deg"].to_numpy(float))]
+        if len(finite) >= MIN_IDENTIFIED:
+            note = (f"Only {len(good)} sweeps met the identification tolerances; the model is fitted on all "
+                    f"{len(finite)} finite estimates (tolerance misses included, flagged in identified.parquet).")
+            good = finite
+    if len(good) < MIN_IDENTIFIED:
+        raise RuntimeError(f"identification: only {len(good)} of {len(ident)} virtual-bench points were identified "
+                           f"within tolerance; a map model needs >= {MIN_IDENTIFIED} (see identified.parquet)")
+    return good, note
+
+
+def holdout_error(model, law: BurnLaw, points: pd.DataFrame) -> dict:
+    """RMS error of a combustion model against the hidden law at ``points`` (BDUR10-90 [deg], m [-])."""
+    pred = model.predict(points)
+    tru = law.predict(points)
+    return {"points": int(len(points)),
+            "bdur_rmse_deg": float(np.sqrt(np.mean((pred["bdur_10_90_deg"] - tru["bdur_10_90_deg"]) ** 2))),
+            "m_rmse": float(np.sqrt(np.mean((pred["wiebe_m"] - tru["wiebe_m"]) ** 2)))}
+
+
+def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
+                 make_evaluate: Callable[[str, SolverSettings], Callable] | None = None,
+                 law: BurnLaw | None = None) -> CampaignResult:
+    """Run the campaign on the virtual bench built on ``spec`` (the calibrated engine's spec).
+
+    Parameters
+    ----------
+    spec : EngineSpec
+        Engine of the truth and of the identification (the airflow-matched spec).
+    settings : CampaignSettings, optional
+    make_evaluate : callable(label, SolverSettings) -> evaluate, optional
+        Factory of ``evaluate(plan) -> results`` callables, one per kind of batch ('feasibility',
+        'vbench', 'ident', 'holdout'); default in-process simulation.
+    law : BurnLaw, optional
+        The bench's hidden burn law (default :class:`BurnLaw` ()).
+
+    Returns
+    -------
+    CampaignResult
+    """
+    st = CampaignSettings() if settings is None else settings
+    make = _in_process(spec) if make_evaluate is None else make_evaluate
+    law = BurnLaw() if law is None else law
+    bench = VirtualBench(spec=spec, law=law, eta_trans=st.eta_trans, seed=st.doe_seed)
+    quick = SolverSettings(step_deg=max(QUICK_SOLVER.step_deg, st.step_deg), tolerance=QUICK_SOLVER.tolerance,
+                           max_cycles=QUICK_SOLVER.max_cycles)
+    full = SolverSettings(step_deg=st.step_deg)
+    ev_feas = make("feasibility", quick)
+
+    def feasible(points: pd.DataFrame) -> np.ndarray:
+        # like a real first session: a quick model check at the sweep's most retarded spark screens the
+        # candidate points for the paper's two infeasible zones, so the design wastes no bench time on them
+        pts = points.reset_index(drop=True).copy()
+        pts["spark_deg_btdc"] = pts["spark_deg_btdc"] + min(st.spark_offsets)
+        pts = priors.with_combustion(pts)
+        if "point_id" not in pts.columns:
+            pts["point_id"] = [f"c{i:05d}" for i in range(len(pts))]
+        return feasibility(pts, evaluate=ev_feas)["feasible"].to_numpy(bool)
+
+    ops = choose_operating_points(st.doe_points, feasible=feasible, seed=st.doe_seed,
+                                  bounds=dict(st.doe_bounds) if st.doe_bounds else None)
+    plan = sweep_plan(ops, offsets=st.spark_offsets)
+    meas = bench.measure(plan, evaluate=make("vbench", full))
+    ok = meas[meas["status"] == "ok"].reset_index(drop=True)
+    if len(ok) < MIN_IDENTIFIED:
+        raise RuntimeError(f"virtual bench: only {len(ok)} of {len(meas)} DOE points could be run "
+                           f"({meas['status'].value_counts().to_dict()}); too few for a map model")
+    ok["at_mbt"] = False
+    n_b, n_m = st.ident_grid
+    ident = identify_sweeps(meas, make("ident", full)(identification_plan(ok, {}, n_b, n_m)),
+                            eta_trans=st.eta_trans)
+    ident, id_err = identification_error(ident, law)
+    good, note = training_points(ident)
+    model = fit_map_model(good, spec=spec)
+
+    # where can the truth engine run?  The hold-out grid once through the noise-free virtual bench (quick
+    # solver); the map is scored there, and the learning curve loses the points the bench would abort
+    test = learning.holdout_grid(**st.holdout)
+    test["point_id"] = [f"h{i:04d}" for i in range(len(test))]
+    quiet = dataclasses.replace(bench, noise=NoiseModel.none())
+    hold = quiet.measure(test, evaluate=make("holdout", quick))
+    runnable = (hold["status"] == "ok").to_numpy()
+    feas = learning.nearest_feasible(test, runnable)
+    test_ok = test[runnable].reset_index(drop=True)
+    held = {**holdout_error(model, law, test_ok), "of": int(len(test))}
+
+    # learning curve: identification error as measured above, designs against a full grid
+    sb, sm = max(id_err["bdur_rmse_deg"], 0.1), max(id_err["m_rmse"], 0.02)
+    if not (math.isfinite(sb) and math.isfinite(sm)):
+        raise RuntimeError(f"identification error not finite ({id_err}); no learning curve")
+    curve = learning.learning_curve(None, law, sizes=st.learning_sizes, seeds=st.learning_seeds,
+                                    designs=("grid", "d_optimal_feasible", "sobol"), test_points=test_ok,
+                                    feasible=feas,
+                                    identify_seeded=lambda s: learning.noisy_truth(law, sb, sm, seed=s,
+                                                                                   feasible=feas))
+    return CampaignResult(operating_points=ops, plan=plan, measured=meas, identified=ident,
+                          identification_error=id_err, fallback=note, model=model, holdout_status=hold,
+                          holdout_error=held, learning_curve=curve, learning_summary=learning.summarise(curve),
+                          noise_used=(sb, sm))

@@ -1,0 +1,148 @@
+"""The gap stage (sim-to-real gap diagnosis of bench data), and the ``gap`` and ``gap-benchmark`` flows.
+
+    bench --validate--> base calibration (smooth combustion law, Gauss-Newton, sweeps on Dask)
+          --> one linearisation batch (reference + FD step per base and effect parameter)
+          --> diagnosis (residuals, where, which effect, how far it shrinks) --> <out>/gap/
+
+Every simulation runs as a sweep subflow on one shared Dask cluster
+(``flows.evaluate.SweepEvaluator``) into ``<out>/sweeps/``; a re-run into the same
+folder reads finished batches back.  No physics here: it all lives in
+``engine_model.gap``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import time
+from pathlib import Path
+
+from flows import prefect_env
+from flows.evaluate import SweepEvaluator, shared_cluster
+from flows.settings import RunSettings
+from flows.stages.context import StageContext
+from flows.sweep import DEFAULT_WORKERS
+
+from prefect import flow  # noqa: E402
+
+from engine_model.bench import load_bench  # noqa: E402
+from engine_model.calibrated import CalibratedEngine  # noqa: E402
+from engine_model.gap.api import diagnose_bench  # noqa: E402
+from engine_model.gap.bench_procedure import LINEARISATION_TOLERANCE  # noqa: E402
+from engine_model.gap.report import write_gap_report  # noqa: E402
+from engine_model.gap.residuals import check_bench_outputs  # noqa: E402
+from engine_model.io import read_table, write_json  # noqa: E402
+from engine_model.version import package_version  # noqa: E402
+
+
+def _read_bench(bench: str | None):
+    """Packaged Table 2 by default; any bench-contract file otherwise (virtual-bench output included)."""
+    if bench is None:
+        return load_bench(None), "engine_model/data/r6_wot_table2.csv (paper Table 2)"
+    p = Path(bench)
+    if not p.is_file():
+        raise ValueError(f"bench file not found: {p}")
+    df = read_table(p)
+    check_bench_outputs(df, str(p))
+    return df, str(p)
+
+
+def run(ctx: StageContext, n_noise: int = 200) -> dict:
+    """The diagnosis of ``ctx.bench`` with the calibrated engine into ``ctx.work/gap``; returns a summary dict."""
+    t0 = time.perf_counter()
+    ctx.work.mkdir(parents=True, exist_ok=True)
+    spec = ctx.engine.spec
+    ev = ctx.evaluator("gap", tolerance=LINEARISATION_TOLERANCE)
+    d, info = diagnose_bench(ctx.bench, ev, spec=spec, n_noise=n_noise, source=ctx.bench_source)
+    notes = [f"Bench: {ctx.bench_source}. Engine: {ctx.engine.source}, calibrated values "
+             f"{ctx.engine.overrides or 'none'}. Base calibration parameters: {info['theta']} (base: {info['base']}). "
+             f"{ev.points} simulations in {ev.calls} sweep batches."]
+    paths = write_gap_report(d, ctx.work, notes=notes)
+    summary = {"kind": "gap", "package_version": package_version(), "spec_hash": spec.spec_hash(),
+               "bench": ctx.bench_source, "created": _dt.datetime.now().isoformat(timespec="seconds"),
+               "named": d.named, "best": d.best, "confidence": d.confidence, "statement": d.statement,
+               "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
+               "gap_reduction_pct": d.gap_reduction_pct, "base_theta": info["theta"],
+               "overrides": dict(ctx.engine.overrides), "simulations": ev.points,
+               "wall_s": round(time.perf_counter() - t0, 1), "report": os.path.relpath(paths["markdown"], ctx.work)}   # relative: the folder is renamed
+    pairs = d.extra.get("pairs")
+    if pairs is not None:
+        summary["pair_named"] = list(pairs.named) if pairs.named else None
+        summary["pair_statement"] = pairs.statement
+    write_json(summary, ctx.work / "gap" / "run.json")
+    return summary
+
+
+@flow(name="gap", log_prints=False, validate_parameters=False)
+def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_deg: float = 0.5,
+             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+             n_noise: int = 200, overrides: dict | None = None) -> dict:
+    """Gap diagnosis of ``bench`` (packaged Table 2 by default) into ``<out>/gap/``.
+
+    ``overrides`` ({"section.field": value}) fixes spec values from an earlier calibration step
+    (e.g. the airflow match) for every simulation.
+    """
+    df, source = _read_bench(bench)
+    engine = CalibratedEngine.from_spec(spec).calibrated(overrides or {})
+    with shared_cluster(workers, dask_address) as addr:
+        ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr,
+                           settings=RunSettings(step_deg=step_deg, stages=("gap",)), bench=df, bench_source=source,
+                           progress=progress)
+        if overrides:
+            ctx = ctx.with_engine(engine)
+        return run(ctx, n_noise=n_noise)
+
+
+@flow(name="gap-benchmark", log_prints=False, validate_parameters=False)
+def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str | None = None,
+                       workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
+                       progress: bool = False, seed_start: int = 0, design: str = "discriminating") -> dict:
+    """The withheld-effect benchmark into ``<out>/gap/`` (``gap_benchmark.csv`` and a report).
+
+    Noise seeds ``seed_start .. seed_start + seeds - 1`` (fresh seeds check rules chosen on earlier ones);
+    ``design`` 'discriminating' (default) or 'sobol' (see ``engine_model.gap.benchmark.benchmark_plan``).
+    """
+    from engine_model import load_spec
+    from engine_model.gap.bench_procedure import BENCH_SOLVER
+    from engine_model.gap.benchmark import run_benchmark
+    from engine_model.gap.report import write_benchmark_report
+
+    kw = small_settings() if small else {}
+    with shared_cluster(workers, dask_address) as addr:
+        ev = SweepEvaluator(Path(out) / "sweeps", addr, spec=spec, step_deg=BENCH_SOLVER.step_deg,
+                            tolerance=BENCH_SOLVER.tolerance, label="bench", progress=progress)
+        res = run_benchmark(seeds=seeds, spec=load_spec(spec), evaluate=ev, progress=print, seed_start=seed_start,
+                            design=design, **kw)
+    paths = write_benchmark_report(res, out)
+    s = res["summary"]
+    return {"csv": str(paths["csv"]), "trials": len(res["table"]), "timing": res["timing"],
+            "summary": s.to_dict("records")}
+
+
+def small_settings() -> dict:
+    """``--small``: a few effects, one magnitude, a 20-point DOE (minutes, not tens of minutes)."""
+    return {"effects": ["transmission_efficiency", "heat_transfer", "restrictor", "combustion_efficiency"],
+            "magnitudes": (1.0,), "n_points": 20, "n_noise": 100}
+
+
+def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
+    """``mbc gap``: validate inputs, then run :func:`gap_flow` under one Prefect API."""
+    _read_bench(bench)
+    CalibratedEngine.from_spec(spec).calibrated(kwargs.get("overrides") or {})   # bad spec or override: fails here
+    with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
+        res = gap_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
+    print(res["statement"])
+    if res.get("pair_statement"):
+        print(res["pair_statement"])
+    print(f"report: {res['report']}")
+    return res
+
+
+def run_gap_benchmark(out, seeds=3, small=False, spec=None, **kwargs) -> dict:
+    """``mbc gap-benchmark``: run :func:`gap_benchmark_flow` under one Prefect API."""
+    CalibratedEngine.from_spec(spec)
+    with prefect_env.prefect_api(verbose=kwargs.get("progress", False)):
+        res = gap_benchmark_flow(out=str(out), seeds=seeds, small=small, spec=spec, **kwargs)
+    print(json.dumps(res, indent=1, default=str)[:4000])
+    return res

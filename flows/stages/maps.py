@@ -1,0 +1,112 @@
+"""The maps stage (and the ``mbc maps`` flow): ECU spark-advance, injection-time and target-lambda tables.
+
+    calibrated engine + combustion model --> engine_model.tables.build_maps (search stages, verification)
+                      --> every batch of simulations a ``sweep`` subflow on one Dask scheduler (``<out>/sweeps/``)
+                      --> engine_model.tables.write_maps into ``<out>/maps/``
+
+No physics here: the stage wires the evaluations to Dask and writes the files.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import os
+import time
+from pathlib import Path
+
+from flows import prefect_env
+from flows.evaluate import shared_cluster
+from flows.settings import RunSettings
+from flows.stages.context import StageContext
+from flows.sweep import DEFAULT_WORKERS
+
+from prefect import flow  # noqa: E402
+
+from engine_model.calibrated import CalibratedEngine  # noqa: E402
+from engine_model.io import write_json  # noqa: E402
+from engine_model.tables import (EcuGrid, LambdaTable, MapSettings, build_maps, load_model,  # noqa: E402
+                                 parse_breakpoints, write_maps)
+from engine_model.version import package_version  # noqa: E402
+
+#: Where the model stage leaves the global model in a run folder.
+MODEL_FILE = Path("model") / "model.json"
+
+
+def ecu_grid(throttle: str | None, speed: str | None, grid_csv: str | None = None) -> EcuGrid:
+    """The ECU grid from breakpoint strings ('0,5,10' or 'start:stop:step'), a wide CSV, or the defaults."""
+    if grid_csv and (throttle or speed):
+        raise ValueError("give either a grid CSV or throttle/speed breakpoints, not both")
+    if grid_csv:
+        return EcuGrid.from_csv(grid_csv)
+    return EcuGrid(parse_breakpoints(throttle, "throttle") if throttle else EcuGrid().throttle_pct,
+                   parse_breakpoints(speed, "speed") if speed else EcuGrid().speed_rpm)
+
+
+def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None = None,
+               st: MapSettings | None = None) -> dict:
+    """Build the tables with ``model`` on ``grid`` and write them into ``ctx.work/maps``; returns the summary."""
+    t0 = time.perf_counter()
+    eng = ctx.engine.spec
+    res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator("maps"), settings=st)
+    paths = write_maps(res, ctx.work / "maps")
+    summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
+               "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
+               "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
+               "files": {k: os.path.relpath(v, ctx.work) for k, v in paths.items()},   # relative: the run folder is renamed
+               "wall_s": round(time.perf_counter() - t0, 1)}
+    write_json(summary, ctx.work / "maps" / "run.json")
+    return summary
+
+
+def run(ctx: StageContext) -> dict:
+    """The maps stage of a run: the global model of the model stage on the run's ECU grid."""
+    model = load_model(ctx.work / MODEL_FILE)
+    grid = ecu_grid(ctx.settings.map_throttle, ctx.settings.map_speed)
+    res = build_into(ctx, model, grid)
+    return {"stats": res["stats"], "files": res["files"]}
+
+
+def _inputs(model: str, spec: str | None, throttle: str | None, speed: str | None, lambda_table: str | None,
+            settings: dict | None, grid_csv: str | None = None):
+    """Load and check every input (before any cluster is started); ValueError on bad input."""
+    engine = CalibratedEngine.from_spec(spec)
+    mdl = load_model(model)
+    grid = ecu_grid(throttle, speed, grid_csv)
+    grid.check_spec(engine.spec)
+    if callable(getattr(mdl, "check_spec", None)):
+        mdl.check_spec(engine.spec)
+    lam = LambdaTable.from_csv(lambda_table) if lambda_table else None
+    if lam is not None:
+        lam.on_grid(grid)
+    st = MapSettings(**(settings or {}))
+    return engine, mdl, grid, lam, st
+
+
+@flow(name="maps", log_prints=False, validate_parameters=False)
+def maps_flow(model: str, out: str, spec: str | None = None, throttle: str | None = None, speed: str | None = None,
+              lambda_table: str | None = None, settings: dict | None = None, step_deg: float = 0.5,
+              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+              grid: str | None = None) -> dict:
+    """ECU tables from the combustion model file ``model`` into ``out``/maps/ (sweeps in ``out``/sweeps/)."""
+    engine, mdl, grid, lam, st = _inputs(model, spec, throttle, speed, lambda_table, settings, grid)
+    with shared_cluster(workers, dask_address) as addr:
+        ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr,
+                           settings=RunSettings(step_deg=step_deg, stages=("maps",)), progress=progress)
+        return build_into(ctx, mdl, grid, lam, st)
+
+
+def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None, settings=None, grid=None,
+             **kwargs) -> dict:
+    """``mbc maps``: validate inputs, then run :func:`maps_flow` under one Prefect API."""
+    _inputs(str(model), spec, throttle, speed, lambda_table, settings, grid)
+    with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
+        res = maps_flow(model=str(model), out=str(out), spec=spec, throttle=throttle, speed=speed,
+                        lambda_table=None if lambda_table is None else str(lambda_table), settings=settings,
+                        grid=None if grid is None else str(grid), **kwargs)
+    s = res["stats"]
+    print(f"maps: {s['cells']} cells ({s['feasible']} feasible; infeasible {s['infeasible']}); limited by "
+          f"{s['limited_by']}; {s['simulated_points']} simulations in {s['evaluate_calls']} batches; "
+          f"smoothing max shift {s['smoothing']['max_shift_deg']:.2f} deg; {res['wall_s']} s\n"
+          f"tables: {Path(out) / 'maps'}/ (ecu_tables.parquet, spark_advance.csv, injection_time.csv, "
+          f"lambda_target.csv, spark_start_retarded.csv, *.png)")
+    return res
