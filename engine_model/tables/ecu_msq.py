@@ -80,19 +80,18 @@ table editor's table export/import (``.table``, see
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import re
-import tempfile
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..io import atomic_write
 from .ecu_table import EcuTable, resample
 
 __all__ = ["MSQ_NS", "IniField", "FirmwareTable", "FIRMWARE_TABLES", "DEFAULT_SIGNATURES", "MsqReport",
-           "write_msq", "read_msq", "msq_signature", "table_kind"]
+           "write_msq", "read_msq", "msq_signature", "table_kind", "write_encoded"]
 
 MSQ_NS = "http://www.msefi.com/:msq"
 DEFAULT_SIGNATURES = {"speeduino": "speeduino 202501", "rusefi": "rusEFI"}
@@ -357,7 +356,7 @@ def write_msq(tables, path, firmware: str, *, kinds=None, resample_to=None, shap
                        f'units={_q(f_.units)}>{_text(arr, f_.decimals)}</constant>')
         out.append("    </page>")
     out.append("</msq>")
-    _write_atomic(path, "\n".join(out) + "\n", "iso-8859-1")
+    write_encoded(path, "\n".join(out) + "\n", "iso-8859-1")
     return report
 
 
@@ -366,16 +365,10 @@ def _q(s: str) -> str:
     return quoteattr(str(s))
 
 
-def _write_atomic(path: Path, text: str, encoding: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding=encoding, newline="\n") as fh:
-            fh.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+def write_encoded(path: Path, text: str, encoding: str) -> Path:
+    """Write ``text`` in ``encoding`` with ``\\n`` line ends, atomically (:func:`engine_model.io.atomic_write`)."""
+    data = text.encode(encoding)
+    return atomic_write(Path(path), lambda tmp: Path(tmp).write_bytes(data))
 
 
 def _merge(pages: dict, base: Path, path: Path, firmware: str) -> None:
@@ -400,7 +393,7 @@ def _merge(pages: dict, base: Path, path: Path, firmware: str) -> None:
                                  "project to the same units (load source, metric/lambda display) or convert")
             el.text = _text(arr, f_.decimals)
     body = ET.tostring(root, encoding="unicode")
-    _write_atomic(path, f'<?xml version="1.0" encoding="{encoding}"?>\n{body}\n', encoding)
+    write_encoded(path, f'<?xml version="1.0" encoding="{encoding}"?>\n{body}\n', encoding)
 
 
 def _unit_class(u: str) -> str:

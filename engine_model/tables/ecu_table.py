@@ -29,7 +29,7 @@ Putting a table on other breakpoints
 Fuel quantities
 ---------------
 :func:`fuel_mg`, :func:`injection_ms` (via
-:func:`engine_model.maps_tables.injection_time_ms`, dead time vs battery
+:func:`engine_model.tables.injection.injection_time_ms`, dead time vs battery
 voltage included) and :func:`ve_percent` (volumetric efficiency relative to
 the air a cylinder holds at a reference pressure and temperature; the
 convention of each ECU is in its docstring).
@@ -46,13 +46,14 @@ import pandas as pd
 
 from .. import thermo
 from ..spec import EngineSpec
+from .injection import injection_time_ms
 
 __all__ = ["LOAD_KINDS", "DEFAULT_DECIMALS", "R_AIR_J_KG_K", "EcuTable", "Resampled", "resample", "to_map_kpa",
            "air_mg_per_cycle", "fuel_mg", "injection_ms", "ve_percent"]
 
 #: load kind -> (axis column name, unit, short label)
 LOAD_KINDS = {"throttle_pct": ("throttle_pct", "%", "throttle"), "map_kpa": ("map_kpa", "kPa", "MAP")}
-#: decimals of the project's tables (as in maps_io's wide CSVs); others default to 2
+#: decimals of the project's tables (as in the wide CSVs of engine_model.tables.export); others default to 2
 DEFAULT_DECIMALS = {"spark_advance": 1, "spark_start_retarded": 1, "injection_time": 3, "lambda_target": 3,
                     "ve": 1, "fuel_mass": 2}
 #: Specific gas constant of dry air [J/(kg K)]: R / M_air with M_air = 28.9647 g/mol (ISO 2533 standard
@@ -217,7 +218,7 @@ class EcuTable:
                        rpm_column: str = "speed_rpm", value_column: str = "value", unit: str | None = None,
                        decimals: int | None = None, flag_column: str | None = None, flag_value=None,
                        uncertainty_column: str | None = None, description: str = "") -> "EcuTable":
-        """One table out of a long-form frame such as maps_io's ``ecu_tables.parquet``.
+        """One table out of a long-form frame such as the maps' ``ecu_tables.parquet``.
 
         ``df`` has one row per cell; if it has a ``table`` column only rows
         with ``table == table`` are used.  ``flag_column``/``flag_value``
@@ -477,14 +478,12 @@ def injection_ms(speed_rpm, lam, spec: EngineSpec, *, air_mg_per_cycle=None, air
 
     ``t = m_fuel / (k q_static) + t_dead(U)`` with ``k = injector.per_cylinder``
     injectors of static flow ``q_static`` and ``t_dead(U) = t_dead,ref + s (U -
-    U_ref)`` clipped at 0: :func:`engine_model.maps_tables.injection_time_ms`,
+    U_ref)`` clipped at 0: :func:`engine_model.tables.injection.injection_time_ms`,
     which this calls.  An ECU that adds its own dead time (Speeduino
     ``injOpen``, rusEFI battery lag curve) wants the pulse width without it:
     subtract ``injection_ms(...) - fuel_mg(...) / (k q_static)``, or use
     :func:`fuel_mg` directly for a fuel-mass ECU.
     """
-    from ..maps_tables import injection_time_ms  # lazy: keeps this module importable on its own
-
     ga = _air_flow_kg_h(speed_rpm, spec, air_mg_per_cycle, air_flow_kg_h, "injection_ms")
     return injection_time_ms(ga, speed_rpm, lam, spec, battery_v=battery_v)["injection_time_ms"]
 
