@@ -125,6 +125,22 @@ def cmd_maps(args) -> int:
     return 0
 
 
+def cmd_export(args) -> int:
+    from flows.export import run_export
+
+    run_export(args.run, out=args.out, fmt=args.format, rpm_bins=args.rpm_bins, load_bins=args.load_bins,
+               axes_from=args.axes_from, load_axis=args.load_axis, fuel=args.fuel, battery_v=args.battery_v,
+               spec=args.spec)
+    return 0
+
+
+def cmd_compare(args) -> int:
+    from flows.export import run_compare
+
+    run_compare(args.run, args.current, table=args.table, out=args.out, spec=args.spec)
+    return 0
+
+
 def cmd_plan(args) -> int:
     from flows.plan import plan_from_args
 
@@ -262,6 +278,33 @@ def build_parser() -> argparse.ArgumentParser:
     common(mp)
     dask(mp)
     mp.set_defaults(func=cmd_maps)
+
+    ex = sub.add_parser("export", help="a run's spark / fuel / lambda tables as ECU files on the ECU's breakpoints")
+    ex.add_argument("--run", required=True, help="run folder holding maps/cells.parquet (and engine.toml)")
+    ex.add_argument("--out", default=None, help="output folder (default RUN/exports/)")
+    ex.add_argument("--format", default="all", choices=("all", "table", "msq-speeduino", "msq-rusefi", "dcm", "csv"),
+                    help="TunerStudio .table, Speeduino / rusEFI .msq (16 x 16), DCM 2.0, units-header CSV (default all)")
+    ex.add_argument("--rpm-bins", default=None, help="rpm breakpoints, '1000,2000,...' or 'start:stop:step'")
+    ex.add_argument("--load-bins", default=None, help="load breakpoints [%% throttle or kPa]")
+    ex.add_argument("--axes-from", default=None, help="take the breakpoints (and load axis) from a table file "
+                                                      "(.table, .msq, .dcm, .csv) of the ECU")
+    ex.add_argument("--load-axis", default=None, choices=("throttle", "kpa"),
+                    help="throttle %% (alpha-N, default) or manifold pressure kPa (speed density)")
+    ex.add_argument("--fuel", default="injection-time", choices=("injection-time", "fuel-mass", "ve"),
+                    help="fuel table as injection time [ms], fuel mass [mg/cycle] or VE [%%] (default injection-time)")
+    ex.add_argument("--battery-v", type=float, default=None, help="battery voltage of the dead time [V] "
+                                                                  "(default: the maps build's)")
+    ex.add_argument("--spec", default=None, help="engine TOML (default RUN/engine.toml)")
+    ex.set_defaults(func=cmd_export)
+
+    cp = sub.add_parser("compare", help="a run's proposed table against the car's current table (CSV + heatmap)")
+    cp.add_argument("--run", required=True, help="run folder holding maps/cells.parquet (and engine.toml)")
+    cp.add_argument("--current", required=True, help="the current table: .table, .msq, .dcm or .csv")
+    cp.add_argument("--table", default="spark", choices=("spark", "injection", "lambda"),
+                    help="which table (default spark); injection follows the current file's unit (ms, mg or %%)")
+    cp.add_argument("--out", default=None, help="output folder (default RUN/compare/)")
+    cp.add_argument("--spec", default=None, help="engine TOML (default RUN/engine.toml)")
+    cp.set_defaults(func=cmd_compare)
 
     from flows.plan import add_plan_arguments
 

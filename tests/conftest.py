@@ -61,3 +61,62 @@ def small_plan(n_ops: int = 3, per_op: int = 4) -> pd.DataFrame:
                          "bdur_10_90_deg": 20.0 + 30.0 * j / max(per_op - 1, 1),
                          "wiebe_m": 3.0 + 3.0 * j / max(per_op - 1, 1)})
     return pd.DataFrame(rows)
+
+
+#: Volumetric efficiency of the synthetic engine of :func:`synthetic_map` (relative to plenum pressure, 293.15 K).
+SYNTHETIC_VE = 0.9
+
+
+def synthetic_plenum_bar(throttle_pct, speed_rpm):
+    """Plenum pressure [bar] of the synthetic engine: rises with throttle, falls a little with speed."""
+    import numpy as np
+    t, n = np.asarray(throttle_pct, float), np.asarray(speed_rpm, float)
+    return 0.3 + 0.7 * (1.0 - np.exp(-t / 30.0)) - 0.01 * n / 1000.0 * t / 100.0
+
+
+def synthetic_map(grid=((20.0, 40.0, 70.0, 100.0), (3000.0, 6000.0, 9000.0, 12000.0))):
+    """(spec, MapResult) of a map build on a synthetic engine, in-process, ~2 s.
+
+    Torque a parabola in spark (MBT 20 + 3 n/1000 deg), knock log-linear in spark, plenum
+    pressure :func:`synthetic_plenum_bar`, air = :data:`SYNTHETIC_VE` of the displacement
+    filled at plenum pressure and 293.15 K (so the VE of the ECU export is known exactly).
+    """
+    import numpy as np
+
+    from engine_model import default_spec
+    from engine_model.tables import EcuGrid, MapSettings, PriorModel, build_maps
+    from engine_model.tables.ecu_table import R_AIR_J_KG_K
+
+    spec = default_spec()
+    vd = spec.geometry.total_displacement_m3
+
+    def engine(plan):
+        s, n, t = (plan[c].to_numpy(float) for c in ("spark_deg_btdc", "speed_rpm", "throttle_pct"))
+        p = synthetic_plenum_bar(t, n)
+        tmax = 60 * t / 100 - 5 * n / 10000 + 5
+        out = plan.copy()
+        out["brake_torque_nm"] = tmax - 0.02 * np.abs(tmax) * (s - (20 + 3 * n / 1000)) ** 2 / 10
+        out["knock_index"] = np.exp(0.08 * (s - (60 + 3 * n / 1000 - 45 * t / 100)))
+        out["bmep_bar"] = out["brake_torque_nm"] * 4 * np.pi / vd / 1e5
+        out["air_mass_flow_kg_h"] = SYNTHETIC_VE * p * 1e5 * vd / (R_AIR_J_KG_K * 293.15) * n / 120 * 3600
+        out["plenum_pressure_bar"] = p
+        out["status"] = "ok"
+        return out
+
+    res = build_maps(spec, PriorModel(), grid=EcuGrid(*grid), evaluate=engine,
+                     settings=MapSettings(spark_min_deg_btdc=20.0))
+    return spec, res
+
+
+def ecu_run_folder(run):
+    """A run folder as the pipeline leaves it for ``mbc export``: maps/ (write_maps) and engine.toml."""
+    from pathlib import Path
+
+    from engine_model.calibrated import CalibratedEngine
+    from engine_model.tables import write_maps
+
+    run = Path(run)
+    spec, res = synthetic_map()
+    write_maps(res, run / "maps", figures=False, spec=spec)
+    CalibratedEngine.from_spec(spec).write(run / "engine.toml")
+    return run, spec, res

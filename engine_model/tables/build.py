@@ -278,8 +278,10 @@ def _verify(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFrame, st: MapS
         if not todo:
             break
     vt = pd.DataFrame([ver[c] for c in cells["cell"]], index=cells.index)
+    # plenum pressure (cycle mean), trapped mass and volumetric efficiency: the MAP axis and VE of the ECU exports
     for col in ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
-                "fuel_mass_flow_kg_h", "exhaust_temp_k", "bdur_10_90_deg", "wiebe_m"):
+                "fuel_mass_flow_kg_h", "exhaust_temp_k", "plenum_pressure_bar", "trapped_mass_mg", "vol_eff",
+                "bdur_10_90_deg", "wiebe_m"):
         cells[col] = pd.to_numeric(vt[col], errors="coerce").astype(float).to_numpy()
     cells["verify_status"] = vt["status"].astype(str).to_numpy()
     cells["verified"] = ~(feas & ~(cells["knock_index"].to_numpy(float) < st.knock_limit))

@@ -9,8 +9,13 @@
     spark_start_retarded.csv  the first-bench-session map [deg BTDC]
     cells.parquet             every per-cell quantity of the build (search, verification, injection)
     evaluations.parquet       every simulated point of the build
-    maps.json                 settings, statistics, spec hash, model
+    maps.json                 settings, statistics, spec hash, model, the ECU files and their notes
     *.png                     heatmaps (rows throttle, columns rpm, like the paper's Figures 3-4)
+    ecu/                      ECU files on the build's grid, throttle % load axis
+                              (:mod:`engine_model.tables.ecu_export`): TunerStudio .table, DCM 2.0 and
+                              units-header CSV of spark, injection time and lambda; Speeduino and rusEFI
+                              .msq of spark, VE (when the engine is given) and lambda, resampled to the
+                              firmware's 16 x 16; README.txt says what was resampled or skipped and why
 
 The whole folder is assembled next to ``out_dir`` and swapped in by renames,
 so a reader sees the old complete set or the new complete set, never a mix.
@@ -28,9 +33,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from engine_model.spec import EngineSpec
+from engine_model.tables.ecu_export import ExportOptions, export_tables, write_exports
 from engine_model.tables.settings import MapResult
 
-__all__ = ["TABLES", "long_form", "wide_table", "plot_table", "write_maps"]
+__all__ = ["TABLES", "long_form", "wide_table", "plot_table", "write_ecu_files", "write_maps"]
 
 #: table name -> (cell column, unit, decimals in the CSV, source column or fixed source, title)
 TABLES = {
@@ -115,14 +122,30 @@ def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Pat
     return path
 
 
-def _summary(result: MapResult) -> dict:
-    return {"kind": "ecu_tables", "spec_hash": result.spec_hash, "model": result.model_name,
+def _summary(result: MapResult, ecu: dict) -> dict:
+    return {"ecu_files": ecu, "kind": "ecu_tables", "spec_hash": result.spec_hash, "model": result.model_name,
             "grid": {"throttle_pct": list(result.grid.throttle_pct), "speed_rpm": list(result.grid.speed_rpm)},
             "settings": dataclasses.asdict(result.settings), "stats": result.stats,
             "files": {name: f"{name}.csv" for name in TABLES} | {"long_form": "ecu_tables.parquet"}}
 
 
-def write_maps(result: MapResult, out_dir, figures: bool = True) -> dict:
+def write_ecu_files(result: MapResult, out_dir, spec: EngineSpec | None = None) -> dict:
+    """The ECU files of the build into ``out_dir`` (see the module docstring); returns files and notes.
+
+    A table the files cannot hold (e.g. a non-finite cell) is not an error of the build: the
+    reason is returned under ``error`` and no ECU file is written.
+    """
+    try:
+        es = export_tables(result.cells, spec, ExportOptions(), source="map cells")
+        ve = export_tables(result.cells, spec, ExportOptions(fuel="ve"), source="map cells") if spec else None
+        res = write_exports(es, out_dir, msq_set=ve)
+    except ValueError as exc:
+        return {"error": str(exc), "files": [], "notes": []}
+    notes = res["notes"] + ([] if spec else ["no engine given: the msq files hold spark and lambda, no VE"])
+    return {"files": sorted(res["files"]), "notes": notes}
+
+
+def write_maps(result: MapResult, out_dir, figures: bool = True, spec: EngineSpec | None = None) -> dict:
     """Write all table files into ``out_dir`` (replaced as a whole; see module docstring).
 
     Parameters
@@ -132,6 +155,8 @@ def write_maps(result: MapResult, out_dir, figures: bool = True) -> dict:
         Target folder, e.g. ``<run>/maps``; an existing folder of that name is replaced.
     figures : bool
         Also write the heatmap PNGs.
+    spec : EngineSpec, optional
+        The engine of the build: with it the msq files carry a VE table as well.
 
     Returns
     -------
@@ -156,7 +181,10 @@ def write_maps(result: MapResult, out_dir, figures: bool = True) -> dict:
         ev["status"] = ev["status"].astype(str)
         ev.to_parquet(tmp / "evaluations.parquet", index=False)
         names["cells"], names["evaluations"] = "cells.parquet", "evaluations.parquet"
-        (tmp / "maps.json").write_text(json.dumps(_summary(result), indent=2, sort_keys=True, default=str) + "\n")
+        ecu = write_ecu_files(result, tmp / "ecu", spec)
+        for name in ecu["files"]:
+            names[f"ecu/{name}"] = f"ecu/{name}"
+        (tmp / "maps.json").write_text(json.dumps(_summary(result, ecu), indent=2, sort_keys=True, default=str) + "\n")
         names["summary"] = "maps.json"
         old = None
         if out.exists():

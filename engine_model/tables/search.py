@@ -80,7 +80,8 @@ def _knock_cross(s1, k1, s2, k2, limit) -> float:
 # --------------------------------------------------------------------------- the spark search
 
 EVAL_COLUMNS = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
-              "fuel_mass_flow_kg_h", "exhaust_temp_k", "cycles_run", "converged", "status")
+              "fuel_mass_flow_kg_h", "exhaust_temp_k", "plenum_pressure_bar", "trapped_mass_mg", "vol_eff",
+              "cycles_run", "converged", "status")
 
 
 def model_spark(model, cells: pd.DataFrame, st: MapSettings) -> np.ndarray:

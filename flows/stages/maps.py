@@ -48,7 +48,7 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     t0 = time.perf_counter()
     eng = ctx.engine.spec
     res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator("maps"), settings=st)
-    paths = write_maps(res, ctx.work / "maps")
+    paths = write_maps(res, ctx.work / "maps", spec=eng)
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
