@@ -137,7 +137,7 @@ def cmd_export(args) -> int:
 def cmd_compare(args) -> int:
     from flows.export import run_compare
 
-    run_compare(args.run, args.current, table=args.table, out=args.out, spec=args.spec)
+    run_compare(args.run, args.current, table=args.table, out=args.out, spec=args.spec, fuel=args.fuel)
     return 0
 
 
@@ -287,7 +287,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--rpm-bins", default=None, help="rpm breakpoints, '1000,2000,...' or 'start:stop:step'")
     ex.add_argument("--load-bins", default=None, help="load breakpoints [%% throttle or kPa]")
     ex.add_argument("--axes-from", default=None, help="take the breakpoints (and load axis) from a table file "
-                                                      "(.table, .msq, .dcm, .csv) of the ECU")
+                                                      "(.table, .msq: its spark table, .dcm, .csv) of the ECU")
     ex.add_argument("--load-axis", default=None, choices=("throttle", "kpa"),
                     help="throttle %% (alpha-N, default) or manifold pressure kPa (speed density)")
     ex.add_argument("--fuel", default="injection-time", choices=("injection-time", "fuel-mass", "ve"),
@@ -302,6 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     cp.add_argument("--current", required=True, help="the current table: .table, .msq, .dcm or .csv")
     cp.add_argument("--table", default="spark", choices=("spark", "injection", "lambda"),
                     help="which table (default spark); injection follows the current file's unit (ms, mg or %%)")
+    cp.add_argument("--fuel", default=None, choices=("injection-time", "fuel-mass", "ve"),
+                    help="form of the current fuel table when its file states no unit")
     cp.add_argument("--out", default=None, help="output folder (default RUN/compare/)")
     cp.add_argument("--spec", default=None, help="engine TOML (default RUN/engine.toml)")
     cp.set_defaults(func=cmd_compare)

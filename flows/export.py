@@ -74,7 +74,8 @@ def _options(args_axes_from, rpm_bins, load_bins, load_axis, fuel, battery_v):
     if args_axes_from is not None:
         if rpm_bins is not None or load_bins is not None:
             raise ValueError("give either --axes-from or --rpm-bins/--load-bins, not both")
-        axes = read_axes(args_axes_from)
+        # an msq holds several tables: the spark table's breakpoints
+        axes = read_axes(args_axes_from, table="ignition" if Path(args_axes_from).suffix.lower() == ".msq" else None)
         kind = "kpa" if axes.load_kind == "map_kpa" else "throttle"
         if load_axis is not None and load_axis != kind:
             raise ValueError(f"--axes-from {args_axes_from}: its load axis is {axes.load_kind}, not --load-axis "
@@ -123,19 +124,31 @@ def _read_current(path, table):
     return read_ecu_table(p)
 
 
-def run_compare(run, current, table="spark", out=None, spec=None) -> dict:
-    """``mbc compare``: the proposed table on the current table's breakpoints, cell by cell (CSV + heatmap)."""
+def run_compare(run, current, table="spark", out=None, spec=None, fuel=None) -> dict:
+    """``mbc compare``: the proposed table on the current table's breakpoints, cell by cell (CSV + heatmap).
+
+    A current file without units (TunerStudio's own .table export has none) is taken in the
+    proposed table's unit (lambda: AFR when its values exceed 5); for the fuel table ``fuel``
+    then says which form it is.
+    """
     if table not in COMPARE_TABLES:
         raise ValueError(f"--table {table!r}: expected one of {list(COMPARE_TABLES)}")
     cur = _read_current(current, table)
-    fuel, afr = "injection-time", False
+    unit = cur.unit.strip().lower()
+    notes = []
     if table == "injection":
-        fuel = _FUEL_BY_UNIT.get(cur.unit.strip().lower())
-        if fuel is None:
+        form = _FUEL_BY_UNIT.get(unit)
+        if fuel is None and form is None:
             raise ValueError(f"{current}: fuel table in {cur.unit!r}; expected ms (injection time), mg (fuel mass) "
-                             "or % (VE)")
-    if table == "lambda":
-        afr = cur.unit.strip().lower() == "afr"
+                             "or % (VE), or say which with --fuel")
+        if fuel is not None and form is not None and fuel != form:
+            raise ValueError(f"{current}: fuel table in {cur.unit!r} ({form}), not --fuel {fuel}")
+        fuel = fuel or form
+    else:
+        fuel = "injection-time"
+    afr = table == "lambda" and (unit == "afr" or (not unit and float(cur.values.max()) > 5.0))
+    if not unit:
+        notes.append(f"the current file states no unit: taken as {'AFR' if afr else 'the proposed table'}'s")
     cells, eng, cells_path = load_run(run, spec)
     out = Path(run) / "compare" if out is None else Path(out)
     if not out.parent.is_dir():
@@ -147,6 +160,8 @@ def run_compare(run, current, table="spark", out=None, spec=None) -> dict:
     proposed = es.table(next(n for n in COMPARE_TABLES[table][0] if n in [t.name for t in es.tables]))
     if afr:
         proposed = proposed.replace(values=proposed.values * _AFR_STOICH, unit="AFR", decimals=1)
+    if not unit:
+        cur = cur.replace(unit=proposed.unit)
     diff = compare(cur, proposed)
     diff["outside"] = diff["outside"].to_numpy(bool) | es.outside.ravel()
     csv_path = write_csv(diff, out / f"{table}_difference.csv")
@@ -169,6 +184,7 @@ def run_compare(run, current, table="spark", out=None, spec=None) -> dict:
         lines.append(f"  {int(diff['outside'].sum())} cells outside the model's grid (edge value held)")
     if afr:
         lines.append(f"  the current table is in AFR: proposed lambda x {_AFR_STOICH:g}")
+    lines += [f"  note: {n}" for n in notes]
     lines.append(f"  -> {csv_path}, {png_path}")
     print("\n".join(lines))
     return {"csv": csv_path, "png": png_path, "diff": diff}

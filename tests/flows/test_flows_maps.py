@@ -31,6 +31,10 @@ def test_mbc_maps_writes_all_tables(prefect_api, tmp_path, capsys):
     run = json.loads((maps / "run.json").read_text())
     assert run["stats"]["evaluate_calls"] == len(list((out / "sweeps").glob("maps-*")))   # each batch a sweep
     assert run["stats"]["simulated_points"] >= 9 * 6
+    # the model's plenum pressure per cell (the MAP axis of the ECU exports), and the ECU files on the run's grid
+    cells = pd.read_parquet(maps / "cells.parquet")
+    assert cells["plenum_pressure_bar"].between(0.1, 1.2).all() and cells["trapped_mass_mg"].gt(0).all()
+    assert {"spark_advance.table", "speeduino.msq", "rusefi.msq", "ecu_tables.dcm"} <= {p.name for p in (maps / "ecu").iterdir()}
     lam = LambdaTable.from_csv(maps / "lambda_target.csv")
     assert lam.values[-1][0] == 0.9 and lam.values[0][0] == 1.0
     assert "9 cells" in capsys.readouterr().out
