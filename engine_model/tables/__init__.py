@@ -6,7 +6,12 @@
     build       build_maps(spec, model, grid, evaluate=...) -> MapResult
     smoothing   bounded-curvature smoothing of a table
     injection   injector pulse width from airflow and lambda
-    export      long-form Parquet, wide CSV, heatmaps (write_maps)
+    export      long-form Parquet, wide CSV, heatmaps, maps/ecu/ (write_maps)
+    ecu_table   EcuTable (one table on its breakpoints), resample, to_map_kpa, fuel mass / injection / VE
+    ecu_files   TunerStudio .table, format detection, read_table / read_axes / write_table
+    ecu_msq     Speeduino and rusEFI .msq; ecu_dcm DCM 2.0; ecu_csv units-header CSV; ecu_text number text
+    ecu_compare a proposed table against the current one (cell by cell, heatmap)
+    ecu_export  a build's tables on the ECU's breakpoints and load axis, in every format
 """
 
 from engine_model.tables.build import build_maps

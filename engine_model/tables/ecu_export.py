@@ -343,7 +343,7 @@ def _readme(es: ExportSet, files: dict, extra: list) -> str:
              f"load axis: {t0.load_column} [{t0.load_unit}], {t0.shape[0]} breakpoints; rpm: {t0.shape[1]} "
              "breakpoints", "tables: " + ", ".join(f"{t.name} [{t.unit}]" for t in es.tables), "", "files:"]
     lines += [f"  {name}" for name in sorted(files.values())]
-    lines += ["", "Speeduino msq: speeduino.ini of release 202501 (advTable1/rpmBins2/mapBins1, veTable, afrTable "
+    lines += ["", "Speeduino msq: speeduino.ini of release 202501.7 (advTable1/rpmBins2/mapBins1, veTable, afrTable "
               "as lambda x 14.7); rusEFI msq: rusefi_config.txt (ignitionTable, veTable, lambdaTable). Partial "
               "tunes: load them into your own project (or merge with write_msq(merge_into=...)); set the load "
               "source (TPS / MAP) in the project."]

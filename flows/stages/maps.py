@@ -108,5 +108,6 @@ def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None
           f"{s['limited_by']}; {s['simulated_points']} simulations in {s['evaluate_calls']} batches; "
           f"smoothing max shift {s['smoothing']['max_shift_deg']:.2f} deg; {res['wall_s']} s\n"
           f"tables: {Path(out) / 'maps'}/ (ecu_tables.parquet, spark_advance.csv, injection_time.csv, "
-          f"lambda_target.csv, spark_start_retarded.csv, *.png)")
+          f"lambda_target.csv, spark_start_retarded.csv, *.png); ECU files: {Path(out) / 'maps' / 'ecu'}/ "
+          "(mbc export for other breakpoints)")
     return res
