@@ -121,10 +121,11 @@ class ExportOptions:
 
     @property
     def load_kind(self) -> str:
+        """The :class:`EcuTable` load kind of :attr:`load_axis`."""
         return "throttle_pct" if self.load_axis == "throttle" else "map_kpa"
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ExportSet:
     """Tables on the ECU's breakpoints, the cells outside the build's grid, and notes for the reader."""
 
