@@ -173,11 +173,12 @@ def run_compare(run, current, table="spark", out=None, spec=None, fuel=None) -> 
     lines = [f"compare {table}: proposed ({proposed.name} [{proposed.unit}]) - current ({Path(current).name}) on "
              f"the current {cur.shape[1]} rpm x {cur.shape[0]} {load_col} [{cur.load_unit}] breakpoints",
              f"  max |difference| {abs(d[k]):.{cur.decimals}f} {cur.unit} at {r[load_col]:g} {cur.load_unit}, "
-             f"{r['speed_rpm']:g} rpm (current {r['current']:g}, proposed {r['proposed']:g})",
+             f"{r['speed_rpm']:g} rpm (current {r['current']:g}, proposed {r['proposed']:.{cur.decimals + 1}f})",
              f"  mean difference {d.mean():+.{cur.decimals + 1}f}, mean |difference| {np.abs(d).mean():.{cur.decimals + 1}f}"
              f" {cur.unit}; {int((d > 0).sum())} cells higher, {int((d < 0).sum())} lower"]
-    if "proposed_uncertainty" in diff.columns:
-        has = diff["proposed_uncertainty"].to_numpy(float) > 0
+    unc = diff["proposed_uncertainty"] if "proposed_uncertainty" in diff.columns else None
+    has = np.zeros(len(diff), bool) if unc is None else unc.to_numpy(float) > 0
+    if has.any():
         lines.append(f"  {int((has & diff['within_uncertainty']).sum())} of {int(has.sum())} cells with a model "
                      "uncertainty (knock-limited spark) differ by less than it")
     if diff["outside"].any():
