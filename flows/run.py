@@ -85,12 +85,15 @@ def _previous(work: Path, manifest: dict, stage: str) -> dict:
 
 @flow(name="run", log_prints=False, validate_parameters=False)
 def run_flow(out: str, bench: str | None = None, spec: str | None = None, settings: dict | None = None,
-             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True) -> dict:
-    """The pipeline into the folder ``out`` (see module docstring); ``settings``: :func:`settings_to_dict` form."""
+             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+             throttle_unit: str = "pct") -> dict:
+    """The pipeline into the folder ``out`` (see module docstring); ``settings``: :func:`settings_to_dict` form.
+
+    ``throttle_unit`` "fraction" reads the bench file's ``throttle_pct`` as 0-1 and converts it to percent."""
     rs = settings_from_dict(settings)
     t0 = time.perf_counter()
     engine = CalibratedEngine.from_spec(spec)
-    meas = load_bench(bench)
+    meas = load_bench(bench, throttle_unit)
     source = "packaged Table 2 (paper, WOT, lambda 0.9)" if bench is None else str(bench)
     final = Path(out)
     work = final.with_name(final.name + ".partial")
@@ -204,7 +207,7 @@ def run_pipeline(out=None, bench=None, spec=None, settings: RunSettings | None =
     """Validate the inputs, then run :func:`run_flow` under one Prefect API for the whole run."""
     rs = RunSettings() if settings is None else settings
     engine = CalibratedEngine.from_spec(spec)
-    load_bench(bench)   # bad bench data fails here, before any folder exists
+    load_bench(bench, kwargs.get("throttle_unit", "pct"))   # bad bench data fails here, before any folder exists
     final = Path(out) if out else default_run_dir(engine.spec_hash())
     folder = final if final.exists() else final.with_name(final.name + ".partial")
     check_stage_inputs(folder, rs.stages)
