@@ -34,6 +34,7 @@ from engine_model.gap.report import write_gap_report  # noqa: E402
 from engine_model.contracts import throttle_to_pct  # noqa: E402
 from engine_model.gap.residuals import check_gap_bench  # noqa: E402
 from engine_model.io import read_table, write_json  # noqa: E402
+from engine_model.report import format_parameters  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
 
@@ -65,7 +66,9 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
     ev = ctx.evaluator("gap", tolerance=LINEARISATION_TOLERANCE)
     d, info = diagnose_bench(ctx.bench, ev, spec=spec, n_noise=n_noise, source=ctx.bench_source)
     notes = [f"Bench: {ctx.bench_source}. Engine: {ctx.engine.source}, calibrated values "
-             f"{ctx.engine.overrides or 'none'}. Base calibration parameters: {info['theta']} (base: {info['base']}). "
+             f"{format_parameters(ctx.engine.overrides) or 'none'}. Base calibration parameters: "
+             f"{format_parameters(info['theta']) if isinstance(info['theta'], dict) else info['theta']} "
+             f"(base: {info['base']}). "
              f"{ev.points} simulations in {ev.calls} sweep batches."]
     paths = write_gap_report(d, ctx.work, notes=notes)
     summary = {"kind": "gap", "package_version": package_version(), "spec_hash": spec.spec_hash(),
