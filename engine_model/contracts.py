@@ -155,7 +155,8 @@ def throttle_to_pct(table: pd.DataFrame, source: str, unit: str = "pct") -> pd.D
         return out
     if finite.size and float(finite.max()) <= 1.0:
         seen = f"all {finite.max():g}" if finite.min() == finite.max() else f"{finite.min():g} to {finite.max():g}"
-        raise ValueError(f"{source}: column 'throttle_pct' holds only values within 0-1 ({seen}); this looks like a fraction, but the column is "
+        raise ValueError(f"{source}: column 'throttle_pct' holds only values within 0-1 ({seen}); this looks like "
+                         "a fraction, but the column is "
                          "throttle opening in percent (0-100, WOT = 100).  Multiply the column by 100, or pass "
                          "--throttle-unit fraction to convert it on load")
     return table

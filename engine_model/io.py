@@ -59,7 +59,8 @@ def make_temp_dir(parent: Path, prefix: str) -> Path:
 def atomic_write(path: Path, write) -> Path:
     """Call ``write(tmp_path)`` on a temporary file next to ``path``, then rename it onto ``path``.
 
-    The file gets mode ``0666 & ~umask`` (the umask at the time of the call); on any failure the temporary file is removed and ``path`` is untouched.
+    The file gets mode ``0666 & ~umask`` (the umask at the time of the call); on any failure the temporary
+    file is removed and ``path`` is untouched.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -43,9 +43,8 @@ def _progress(label: str):
 def cmd_simulate(args) -> int:
     from engine_model import SolverSettings, load_spec
     from engine_model.sim import simulate
-    from engine_model.io import read_table, write_parquet
-
     from engine_model.contracts import throttle_to_pct
+    from engine_model.io import read_table, write_parquet
 
     spec = load_spec(args.spec)
     points = throttle_to_pct(read_table(args.points), f"points file {args.points}", args.throttle_unit)

@@ -117,7 +117,8 @@ class CampaignResult:
                f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
                f"m RMSE {ide['m_rmse']:.2f} (bias {ide['m_bias']:+.2f}).",
                "Global model (chosen per output by K-fold CV: "
-               + ", ".join(f"{k} {v}" for k, v in dict(self.model.chosen_).items()) + f"); error against the hidden law "
+               + ", ".join(f"{k} {v}" for k, v in dict(self.model.chosen_).items())
+               + f"); error against the hidden law "
                f"on the {held['points']} runnable points of the {held['of']}-point hold-out grid: BDUR10-90 "
                f"{held['bdur_rmse_deg']:.2f} deg, m {held['m_rmse']:.2f}."]
         if self.fallback:

@@ -103,7 +103,8 @@ class EngineSpec:
             if not field or sec is None or not dataclasses.is_dataclass(sec) or \
                     field not in {f.name for f in dataclasses.fields(sec)}:
                 names = [f"{f.name}.{g.name}" for f in dataclasses.fields(self)
-                         if dataclasses.is_dataclass(getattr(self, f.name)) for g in dataclasses.fields(getattr(self, f.name))]
+                         if dataclasses.is_dataclass(getattr(self, f.name))
+                         for g in dataclasses.fields(getattr(self, f.name))]
                 raise ValueError(f"spec override {key!r}: no such field{_nearest(key, names)} (expected "
                                  "'<section>.<field>', e.g. 'intake.restrictor_cd')")
             cur = getattr(sec, field)

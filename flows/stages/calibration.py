@@ -241,7 +241,8 @@ def calibrate_flow(out: str, bench: str | None = None, spec: str | None = None, 
                                                                n_m=n_m, airflow_step_deg=airflow_step_deg))
     with shared_cluster(workers, dask_address) as addr:
         ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr, settings=settings,
-                           bench=load_bench(bench, throttle_unit), bench_source=str(bench or "packaged Table 2"), progress=progress)
+                           bench=load_bench(bench, throttle_unit), bench_source=str(bench or "packaged Table 2"),
+                           progress=progress)
         summary = run(ctx)
     ctx.with_engine(calibrated_engine(engine, summary))
     return summary
