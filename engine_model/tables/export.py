@@ -114,7 +114,7 @@ def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Pat
     ax.set_ylabel("throttle [%]")
     note = "hatched: infeasible"
     if name.startswith("spark"):
-        note += "; * (orange outline): knock-limited"
+        note += "; *: knock-limited (outlined)"
     ax.set_title(f"{title}\n{note}", fontsize=8)
     fig.colorbar(im, ax=ax, label=unit, fraction=0.04, pad=0.02)
     fig.tight_layout()
