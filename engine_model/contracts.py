@@ -18,7 +18,7 @@ import pandas as pd
 __all__ = [
     "PLAN_COLUMNS", "OPERATING_POINT_COLUMNS", "RESULT_COLUMNS", "BENCH_REQUIRED", "BENCH_OPTIONAL",
     "MEASURED_COLUMNS", "BENCH_STATUSES", "COMBUSTION_INPUTS", "COMBUSTION_OUTPUTS", "IDENTIFICATION_COLUMNS",
-    "SWEEP_COLUMNS", "TABLE_COLUMNS", "UNITS", "check_combustion_inputs",
+    "SWEEP_COLUMNS", "TABLE_COLUMNS", "UNITS", "THROTTLE_UNITS", "check_combustion_inputs", "throttle_to_pct",
 ]
 
 #: Columns every DOE plan carries.
@@ -111,3 +111,52 @@ def check_combustion_inputs(points: pd.DataFrame, who: str, source: str = "point
                              f"finite number in [{lo:g}, {hi:g}]")
         out[col] = vals
     return out
+
+
+#: How a table's ``throttle_pct`` column may be given: percent (the contract) or a 0-1 fraction (converted on load).
+THROTTLE_UNITS = ("pct", "fraction")
+
+
+def throttle_to_pct(table: pd.DataFrame, source: str, unit: str = "pct") -> pd.DataFrame:
+    """``table`` with ``throttle_pct`` in percent; ValueError when the column looks like a 0-1 fraction.
+
+    Parameters
+    ----------
+    table : DataFrame
+        A bench file or plan read from ``source``; a table without ``throttle_pct`` is returned as it is
+        (the caller's column check names the missing column).
+    source : str
+        What the table is and where it came from (e.g. ``"bench file data/run3.csv"``), for the message.
+    unit : {"pct", "fraction"}
+        ``"pct"`` (the contract): values all within 0-1 are refused, since a 0-1 fraction read as percent
+        would run every point nearly closed.  ``"fraction"``: values must lie in [0, 1] and are
+        multiplied by 100.
+
+    Raises
+    ------
+    ValueError
+        Naming the source, the column, the values seen and the two ways to fix it.
+    """
+    if unit not in THROTTLE_UNITS:
+        raise ValueError(f"throttle unit {unit!r}: choose one of {list(THROTTLE_UNITS)}")
+    if not isinstance(table, pd.DataFrame) or "throttle_pct" not in table.columns or len(table) == 0:
+        return table
+    vals = pd.to_numeric(table["throttle_pct"], errors="coerce").to_numpy(dtype=float)
+    finite = vals[np.isfinite(vals)]
+    if unit == "fraction":
+        bad = np.flatnonzero(np.isfinite(vals) & ((vals < 0.0) | (vals > 1.0)))
+        if bad.size:
+            i = int(bad[0])
+            raise ValueError(f"{source}: row {i}, column 'throttle_pct': value {vals[i]:g} is not a fraction in "
+                             "[0, 1], but --throttle-unit fraction was given; leave the option out for a "
+                             "column in percent (0-100)")
+        out = table.copy()
+        out["throttle_pct"] = vals * 100.0
+        return out
+    if finite.size and float(finite.max()) <= 1.0:
+        seen = f"all {finite.max():g}" if finite.min() == finite.max() else f"{finite.min():g} to {finite.max():g}"
+        raise ValueError(f"{source}: column 'throttle_pct' holds only values within 0-1 ({seen}); this looks like "
+                         "a fraction, but the column is "
+                         "throttle opening in percent (0-100, WOT = 100).  Multiply the column by 100, or pass "
+                         "--throttle-unit fraction to convert it on load")
+    return table

@@ -10,25 +10,57 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import threading
 from pathlib import Path
 
 import pandas as pd
 
 
-def _current_umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process umask now (0o022 on most systems).
+
+    Read from ``/proc/self/status`` where the kernel reports it (Linux), which changes nothing;
+    elsewhere by setting and restoring it under a lock (``os.umask`` can only be read by setting it).
+    """
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:
+        mask = os.umask(0o077)
+        os.umask(mask)
     return mask
 
 
-#: The process umask at import (reading it means setting it, which is not thread-safe, so it is read once).
-_UMASK = _current_umask()
+def file_mode() -> int:
+    """Mode of a new file under the current umask (0o644 under umask 022)."""
+    return 0o666 & ~current_umask()
+
+
+def dir_mode() -> int:
+    """Mode of a new folder under the current umask (0o755 under umask 022)."""
+    return 0o777 & ~current_umask()
+
+
+def make_temp_dir(parent: Path, prefix: str) -> Path:
+    """A fresh hidden folder in ``parent`` with the mode the umask gives a new folder (not mkdtemp's 0700),
+    to be filled and renamed into place."""
+    tmp = Path(tempfile.mkdtemp(prefix=prefix, suffix=".tmp", dir=parent))
+    os.chmod(tmp, dir_mode())
+    return tmp
 
 
 def atomic_write(path: Path, write) -> Path:
     """Call ``write(tmp_path)`` on a temporary file next to ``path``, then rename it onto ``path``.
 
-    The file gets mode ``0666 & ~umask``; on any failure the temporary file is removed and ``path`` is untouched.
+    The file gets mode ``0666 & ~umask`` (the umask at the time of the call); on any failure the temporary
+    file is removed and ``path`` is untouched.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -36,7 +68,7 @@ def atomic_write(path: Path, write) -> Path:
     os.close(fd)
     try:
         write(tmp)
-        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.chmod(tmp, file_mode())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -63,6 +95,11 @@ def write_text(text: str, path) -> Path:
 def write_json(obj, path) -> Path:
     """Write JSON (sorted keys, indented) atomically."""
     return write_text(json.dumps(obj, indent=2, sort_keys=True, default=str) + "\n", path)
+
+
+def write_figure(fig, path, dpi: int = 100) -> Path:
+    """Save a matplotlib figure as PNG atomically (same file mode as every other output)."""
+    return atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
 
 
 def read_table(path, text_columns=("point_id",)) -> pd.DataFrame:

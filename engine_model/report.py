@@ -6,8 +6,70 @@ from pathlib import Path
 
 import pandas as pd
 
+from engine_model.io import write_figure
+
 from engine_model.sim.prepare import OperatingPoint, SolverSettings
 from engine_model.sim.simulate import simulate_point
+
+
+#: Unit of a value from the suffix of its name (longest suffix first), for text meant for people.
+_NAME_UNITS = (("_deg_btdc", "deg BTDC"), ("_deg_atdc", "deg ATDC"), ("_g_kwh", "g/kWh"), ("_kg_h", "kg/h"),
+               ("_pct", "%"), ("_rpm", "rpm"), ("_deg", "deg"), ("_bar", "bar"), ("_kw", "kW"), ("_nm", "N m"),
+               ("_m3", "m^3"), ("_m", "m"), ("_k", "K"), ("_s", "s"), ("_pa", "Pa"))
+
+
+def unit_of(name: str) -> str:
+    """The unit a column or spec field name carries in its suffix ('' when dimensionless)."""
+    for suffix, unit in _NAME_UNITS:
+        if str(name).endswith(suffix):
+            return unit
+    return ""
+
+
+def format_value(value, name: str = "", digits: int = 3) -> str:
+    """``value`` rounded to ``digits`` significant digits, with the unit its ``name`` carries (e.g. '0.216 m')."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value)
+    unit = unit_of(name)
+    txt = f"{value:.{digits}g}" if value == value else "n/a"
+    return f"{txt} {unit}" if unit and unit != "%" else (f"{txt} %" if unit == "%" else txt)
+
+
+def bound_note(value: float, low: float, high: float, name: str = "", near: float = 0.05) -> str:
+    """' (at upper bound 0.4)' when ``value`` lies within 1 % of the search range of a bound, ' (near lower
+    bound 0.1 m)' within ``near`` of the range, else ''."""
+    span = float(high) - float(low)
+    if not span > 0 or not value == value:
+        return ""
+    for side, b in (("lower", low), ("upper", high)):
+        d = abs(float(value) - float(b)) / span
+        if d <= 0.01:
+            return f" (at {side} bound {format_value(float(b), name)})"
+        if d <= near:
+            return f" (near {side} bound {format_value(float(b), name)})"
+    return ""
+
+
+def format_parameters(values: dict, bounds: dict | None = None, at_bound: dict | None = None) -> str:
+    """'name = value unit' per parameter, rounded, each flagged when at (or near) its search bound.
+
+    ``bounds``: {name: (low, high)}; ``at_bound``: {name: bool} from the fit itself (flags a parameter
+    at its bound even when ``bounds`` does not give the range).
+    """
+    parts = []
+    for k, v in values.items():
+        note = ""
+        if bounds and k in bounds:
+            note = bound_note(v, *bounds[k], name=k)
+        if not note.startswith(" (at") and at_bound and at_bound.get(k):
+            note = " (at a search bound)"
+        parts.append(f"{k} = {format_value(v, k)}{note}")
+    return ", ".join(parts)
+
+
+def format_mapping(d: dict) -> str:
+    """A small dict as 'key value, key value' (no braces or quotes), numbers rounded with their units."""
+    return ", ".join(f"{k} {format_value(v, str(k))}" for k, v in d.items())
 
 
 def comparison_table(bench: pd.DataFrame, sim: pd.DataFrame, eta_trans: float) -> pd.DataFrame:
@@ -51,7 +113,7 @@ def plot_comparison(cmp_: pd.DataFrame, path: Path, eta_trans: float) -> None:
         a.legend(fontsize=8)
     fig.suptitle("Yamaha R6 FS, WOT, lambda 0.9: uncalibrated model vs Table 2")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -103,7 +165,7 @@ def plot_traces(spec, bench_row, bdur_10_90: float, wiebe_m: float, solver: Solv
     fig.suptitle(f"{op.speed_rpm:.0f} rpm, throttle {op.throttle_pct:g} %, spark {op.spark_deg_btdc:g} deg BTDC: "
                  f"pmax {row['pmax_bar']:.0f} bar at {row['pmax_deg_atdc']:.0f} deg ATDC, VE {row['vol_eff']:.2f}")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
 
 
@@ -141,7 +203,7 @@ def plot_operating_map(res: pd.DataFrame, path: Path, title: str = "") -> None:
                             mark, ha="center", va="center", color="w", fontsize=8, fontweight="bold")
     fig.suptitle(title or "Operating map: K = knock-limited at the MBT spark estimate, Z = near-zero BMEP")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
 
 

@@ -43,10 +43,11 @@ def _progress(label: str):
 def cmd_simulate(args) -> int:
     from engine_model import SolverSettings, load_spec
     from engine_model.sim import simulate
+    from engine_model.contracts import throttle_to_pct
     from engine_model.io import read_table, write_parquet
 
     spec = load_spec(args.spec)
-    points = read_table(args.points)
+    points = throttle_to_pct(read_table(args.points), f"points file {args.points}", args.throttle_unit)
     out = Path(args.out)
     res = simulate(spec, points, SolverSettings(step_deg=args.step_deg), progress=_progress("simulating"))
     write_parquet(res.drop(columns=["sim_time_s"], errors="ignore"), out)
@@ -68,7 +69,8 @@ def cmd_sweep(args) -> int:
         out = default_run_dir(frame_hash(read_table(args.plan)))
     t0 = time.perf_counter()
     man = run_sweep(args.plan, out, spec=args.spec, workers=args.workers, dask_address=args.dask_address,
-                    step_deg=args.step_deg, tolerance=args.tolerance, chunk_size=args.chunk_size)
+                    step_deg=args.step_deg, tolerance=args.tolerance, chunk_size=args.chunk_size,
+                    throttle_unit=args.throttle_unit)
     c = man["counts"]
     wall = time.perf_counter() - t0
     print(f"\nsweep {man['status']}: {c['points']}/{man['points']} points ({c['ok']} ok, "
@@ -97,7 +99,7 @@ def cmd_run(args) -> int:
         if getattr(args, name) is not None:
             changes[f"map_{name}"] = getattr(args, name)
     run_pipeline(out=args.out, bench=args.bench, spec=args.spec, settings=dataclasses.replace(base, **changes),
-                 workers=args.workers, dask_address=args.dask_address)
+                 workers=args.workers, dask_address=args.dask_address, throttle_unit=args.throttle_unit)
     return 0
 
 
@@ -108,7 +110,7 @@ def cmd_calibrate(args) -> int:
     run_calibration(out=args.out, bench=args.bench, spec=args.spec, eta_trans=args.eta_trans,
                     step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address,
                     n_bdur=args.n_bdur, n_m=args.n_m, airflow_grid=grid, airflow_max_nfev=args.airflow_max_nfev,
-                    airflow_step_deg=args.airflow_step_deg)
+                    airflow_step_deg=args.airflow_step_deg, throttle_unit=args.throttle_unit)
     return 0
 
 
@@ -169,7 +171,7 @@ def cmd_gap(args) -> int:
         if not sep:
             raise ValueError(f"--override {item!r}: expected SECTION.FIELD=NUMBER")
     run_gap(out=args.out, bench=args.bench, spec=args.spec, step_deg=args.step_deg, workers=args.workers,
-            dask_address=args.dask_address, overrides=overrides or None)
+            dask_address=args.dask_address, overrides=overrides or None, throttle_unit=args.throttle_unit)
     return 0
 
 
@@ -202,6 +204,13 @@ def cmd_gap_plan(args) -> int:
     return 0
 
 
+def throttle_unit_option(sp):
+    """``--throttle-unit`` of the commands that read bench files or plans."""
+    sp.add_argument("--throttle-unit", choices=("pct", "fraction"), default="pct",
+                    help="unit of the throttle_pct column: pct (0-100, the default; a column all within 0-1 is "
+                         "refused as a likely fraction) or fraction (0-1, converted to %% on load)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="mbc", description="Model-based calibration of a restricted race engine")
     p.add_argument("--version", action="version", version=f"mbc {package_version()}")
@@ -220,6 +229,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--points", required=True, help="CSV or Parquet with the operating-point columns")
     s.add_argument("--out", required=True, help="output Parquet file")
     common(s)
+    throttle_unit_option(s)
     s.set_defaults(func=cmd_simulate)
 
     w = sub.add_parser("sweep", help="simulate a plan on Dask workers into Parquet parts (re-run resumes)")
@@ -229,6 +239,7 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--tolerance", type=float, default=1e-3, help="cycle convergence tolerance (default 1e-3)")
     common(w)
     dask(w)
+    throttle_unit_option(w)
     w.set_defaults(func=cmd_sweep)
 
     r = sub.add_parser("run", help="main job: bench data -> calibration -> virtual-bench DOE -> global model -> "
@@ -245,6 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     r.add_argument("--step-deg", type=float, default=None, help="crank-angle step [deg] (default 0.5; --quick 1)")
     dask(r)
+    throttle_unit_option(r)
     r.set_defaults(func=cmd_run)
 
     c = sub.add_parser("calibrate", help="airflow matching + Wiebe identification on bench data")
@@ -260,6 +272,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="crank step of the airflow match [deg] (default 1.0; airflow within 0.2 %% of 0.5 deg)")
     common(c)
     dask(c)
+    throttle_unit_option(c)
     c.set_defaults(func=cmd_calibrate)
 
     mp = sub.add_parser("maps", help="ECU tables (spark advance, injection time, lambda) from a combustion model")
@@ -329,6 +342,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="spec value from an earlier calibration step, e.g. intake.restrictor_cd=0.85 (repeatable)")
     common(gp)
     dask(gp)
+    throttle_unit_option(gp)
     gp.set_defaults(func=cmd_gap)
 
     gb = sub.add_parser("gap-benchmark", help="gap diagnosis on withheld effects -> <out>/gap/gap_benchmark.csv")

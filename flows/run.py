@@ -38,7 +38,7 @@ from prefect import flow  # noqa: E402
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.io import write_json  # noqa: E402
-from engine_model.report import write_index  # noqa: E402
+from engine_model.report import format_mapping, format_parameters, format_value, write_index  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
 #: What a stage leaves in the run folder that a later stage needs (checked when the stage is not run).
@@ -85,12 +85,15 @@ def _previous(work: Path, manifest: dict, stage: str) -> dict:
 
 @flow(name="run", log_prints=False, validate_parameters=False)
 def run_flow(out: str, bench: str | None = None, spec: str | None = None, settings: dict | None = None,
-             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True) -> dict:
-    """The pipeline into the folder ``out`` (see module docstring); ``settings``: :func:`settings_to_dict` form."""
+             workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
+             throttle_unit: str = "pct") -> dict:
+    """The pipeline into the folder ``out`` (see module docstring); ``settings``: :func:`settings_to_dict` form.
+
+    ``throttle_unit`` "fraction" reads the bench file's ``throttle_pct`` as 0-1 and converts it to percent."""
     rs = settings_from_dict(settings)
     t0 = time.perf_counter()
     engine = CalibratedEngine.from_spec(spec)
-    meas = load_bench(bench)
+    meas = load_bench(bench, throttle_unit)
     source = "packaged Table 2 (paper, WOT, lambda 0.9)" if bench is None else str(bench)
     final = Path(out)
     work = final.with_name(final.name + ".partial")
@@ -142,27 +145,56 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
     return man
 
 
-def _write_index(work: Path, man: dict) -> Path:
+def _identification_text(idn: dict) -> str:
+    """'6 of 7 bench points identified' plus the points whose parameters lie at the edge of the search."""
+    rng = idn.get("search_range") or {"bdur_10_90_deg": [20.0, 50.0], "wiebe_m": [2.0, 8.0]}
+    text = f"{idn['fit_ok']} of {idn['points']} bench points identified"
+    flags = []
+    for key, label in (("bdur_10_90_deg", "BDUR10-90"), ("wiebe_m", "m")):
+        lo, hi = rng[key]
+        for side, b in (("lower", lo), ("upper", hi)):
+            at = [r["point_id"] for r in idn.get("per_point", []) if r.get(key) is not None
+                  and abs(r[key] - b) <= 0.01 * (hi - lo)]
+            if at:
+                flags.append(f"{label} at its {side} search bound {format_value(float(b), key)} at {len(at)} "
+                             f"point(s) ({', '.join(at)})")
+    return text + ("; " + "; ".join(flags) if flags else "")
+
+
+def index_summary(man: dict) -> list[tuple[str, str]]:
+    """The key-figure rows at the top of a run's index.html, from its manifest: rounded numbers with units,
+    the run mode, and parameters at (or near) their search bounds flagged."""
+    from engine_model.calibration import DEFAULT_PARAMETERS
+
     cal = man["calibration"]
     air = cal["airflow"]
+    bounds = air.get("bounds") or {p.name: (p.low, p.high) for p in DEFAULT_PARAMETERS}
+    st = man.get("settings", {})
+    mode = (f"stages {', '.join(man['stages'])}; " + ("--quick (small smoke-run settings: coarse searches, "
+            "small tables)" if man.get("quick") else "full settings")
+            + (f"; crank step {st['step_deg']:g} deg" if isinstance(st.get("step_deg"), (int, float)) else ""))
     summary = [("engine", f"{man['engine']} (spec {man['spec_hash'][:12]}, calibrated {man['calibrated_spec_hash'][:12]}"
                           f"; {ENGINE_FILE})"),
                ("bench data", man["bench"]),
-               ("run", f"stages {', '.join(man['stages'])}" + (" (--quick: small settings)" if man.get("quick") else "")),
-               ("airflow match", ", ".join(f"{k} = {v:.4g}" for k, v in air["parameters"].items())
+               ("run mode", mode),
+               ("airflow match", format_parameters(air["parameters"], bounds, air.get("at_bound"))
                 + f"; max |Ga_REL| {air['max_abs_ga_rel_pct']:.2f} %"),
-               ("identification", f"{cal['identification']['fit_ok']} of {cal['identification']['points']} "
-                                  "bench points identified")]
+               ("identification", _identification_text(cal["identification"]))]
     if "model" in man:
         h = man["model"]["holdout"]
-        summary.append(("global model", f"{man['model']['model_chosen']}; error vs hidden law BDUR10-90 "
-                                        f"{h['bdur_rmse_deg']:.2f} deg, m {h['m_rmse']:.2f}"))
+        summary.append(("global model", f"{format_mapping(man['model']['model_chosen'])}; error vs hidden law "
+                                        f"BDUR10-90 {h['bdur_rmse_deg']:.2f} deg, m {h['m_rmse']:.2f}"))
     if "gap" in man:
         summary.append(("gap diagnosis", man["gap"]["statement"]))
         if man["gap"].get("pair_statement"):
             summary.append(("gap, two effects at once", man["gap"]["pair_statement"]))
     summary.append(("wall time", f"{man.get('wall_time_s', 0):.0f} s ("
                     + ", ".join(f"{k} {v:.0f} s" for k, v in man.get("timings_s", {}).items()) + ")"))
+    return summary
+
+
+def _write_index(work: Path, man: dict) -> Path:
+    summary = index_summary(man)
     cal_figs = sorted(p.relative_to(work) for p in (work / "calibration" / "figures").glob("*.png"))
     sections = [("Calibration on the bench data", "Airflow matching and Wiebe identification (report: "
                  "calibration/calibration.html); the calibrated engine is engine.toml (--spec of any command).",
@@ -185,8 +217,10 @@ def _write_index(work: Path, man: dict) -> Path:
 
 def _summary_text(man: dict, final: Path) -> str:
     cal = man["calibration"]["airflow"]
-    lines = ["", f"run complete in {man['wall_time_s']:.0f} s ({man['timings_s']})",
-             f"airflow match: {cal['parameters']}, max |Ga_REL| = {cal['max_abs_ga_rel_pct']:.2f} %"]
+    lines = ["", f"run complete in {man['wall_time_s']:.0f} s ("
+             + ", ".join(f"{k} {v:.0f} s" for k, v in man["timings_s"].items()) + ")",
+             f"airflow match: {format_parameters(cal['parameters'], cal.get('bounds'), cal.get('at_bound'))}, "
+             f"max |Ga_REL| = {cal['max_abs_ga_rel_pct']:.2f} %"]
     if "model" in man:
         lines += man["model"]["lines"][1:3]
     if "maps" in man:
@@ -204,7 +238,7 @@ def run_pipeline(out=None, bench=None, spec=None, settings: RunSettings | None =
     """Validate the inputs, then run :func:`run_flow` under one Prefect API for the whole run."""
     rs = RunSettings() if settings is None else settings
     engine = CalibratedEngine.from_spec(spec)
-    load_bench(bench)   # bad bench data fails here, before any folder exists
+    load_bench(bench, kwargs.get("throttle_unit", "pct"))   # bad bench data fails here, before any folder exists
     final = Path(out) if out else default_run_dir(engine.spec_hash())
     folder = final if final.exists() else final.with_name(final.name + ".partial")
     check_stage_inputs(folder, rs.stages)

@@ -47,6 +47,7 @@ from engine_model import SolverSettings, load_spec  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 from engine_model.sim.simulate import simulate, spec_columns, validate_points  # noqa: E402  (installed module: pickled by reference)
 from engine_model.doe import validate_plan  # noqa: E402
+from engine_model.contracts import throttle_to_pct  # noqa: E402
 from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 
 DEFAULT_WORKERS = 2
@@ -385,14 +386,20 @@ def _dask_description() -> dict:
 
 def run_sweep(plan, out, spec: str | None = None, workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
               step_deg: float = 0.5, tolerance: float = 1e-3, chunk_size: int | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, throttle_unit: str = "pct") -> dict:
     """Validate, then run :func:`sweep_flow` on a Dask runner under one Prefect API for the whole run.
 
     ``plan`` may be a path or a DataFrame (then saved as ``out``/plan_input.parquet
-    first).  Bad input raises ValueError before any folder is created.
+    first).  Bad input raises ValueError before any folder is created.  A plan file whose
+    ``throttle_pct`` lies all within 0-1 is refused; ``throttle_unit="fraction"`` converts it to percent
+    (the converted plan is saved as ``out``/plan_input.parquet).
     """
     eng = load_spec(spec)
     out = Path(out)
+    if not isinstance(plan, pd.DataFrame):
+        converted = throttle_to_pct(read_table(plan), f"plan file {plan}", throttle_unit)
+        if throttle_unit != "pct":
+            plan = converted
     if isinstance(plan, pd.DataFrame):
         prepare_plan(plan, eng, source="plan")
         plan_path = out / "plan_input.parquet"

@@ -30,7 +30,7 @@ from importlib import resources
 import numpy as np
 import pandas as pd
 
-from engine_model.contracts import BENCH_REQUIRED
+from engine_model.contracts import BENCH_REQUIRED, throttle_to_pct
 from engine_model.io import read_table
 
 PACKAGED_TABLE2 = "r6_wot_table2.csv"
@@ -191,8 +191,12 @@ def validate_bench(df: pd.DataFrame, source: str = "bench") -> pd.DataFrame:
     return df
 
 
-def load_bench(path=None) -> pd.DataFrame:
+def load_bench(path=None, throttle_unit: str = "pct") -> pd.DataFrame:
     """Load and validate bench data (CSV or Parquet); ``None`` loads the packaged Table 2.
+
+    ``throttle_unit`` "pct" (the contract) refuses a ``throttle_pct`` column whose values all lie
+    within 0-1 (a fraction by mistake); "fraction" converts such a column to percent on load
+    (:func:`engine_model.contracts.throttle_to_pct`).
 
     Returns
     -------
@@ -209,6 +213,7 @@ def load_bench(path=None) -> pd.DataFrame:
             df, src = read_table(p), f"engine_model/data/{PACKAGED_TABLE2}"
     else:
         df, src = read_table(path), str(path)
+    df = throttle_to_pct(df, f"bench file {src}", throttle_unit)
     return validate_bench(df, src)
 
 

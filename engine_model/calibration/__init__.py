@@ -29,6 +29,7 @@ from engine_model.calibration.airflow import (AIRFLOW_NOISE_PCT, DEFAULT_PARAMET
                                 Parameter, airflow_plan, ga_rel_pct, match_airflow, matching_burn)
 from engine_model.calibration.plots import plot_airflow_match, plot_eta_relation, plot_identification  # noqa: F401
 from engine_model.calibration.identifiability import identifiability_check, synthetic_bench  # noqa: F401
+from engine_model.calibration.identify import BDUR_RANGE_DEG, M_RANGE  # noqa: F401
 from engine_model.calibration.identify import (Identification, Tolerances, grid_axes, identification_plan, identify,  # noqa: F401
                        identify_point, identify_quick, point_surfaces, quadratic_rs, terms_used)
 from engine_model.calibration.eta import (DEFAULT_ETAS, JointFit, eta_sensitivity, fit_eta_relation,  # noqa: F401

@@ -7,6 +7,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from engine_model.io import write_figure
+
 
 def _plt():
     import matplotlib
@@ -35,9 +37,37 @@ def plot_airflow_match(match, path: Path) -> Path:
     vals = ", ".join(f"{k.split('.')[-1]}={v:.3g}" for k, v in match.values.items())
     fig.suptitle(f"Airflow match ({vals}); coarse grid of {len(g0)} sets, rms {match.rms_ga_rel_pct:.2f} %")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return Path(path)
+
+
+#: Upper end of the BSFC colour scale [g/kWh]: above any running SI engine's BSFC (best ~230, part load
+#: ~400-500); cells above it are near-zero-power corners of the plane, where BSFC runs off to 10^5 and
+#: would flatten the rest of the scale to one colour.
+BSFC_PLOT_MAX_G_KWH = 600.0
+
+
+def bsfc_scale(z, top: float = BSFC_PLOT_MAX_G_KWH) -> tuple[np.ndarray, np.ndarray]:
+    """Contour levels of a BSFC field [g/kWh] clipped at ``top``, and the mask of cells shown as "> top"
+    (above it, or without positive power: BSFC <= 0 or not finite)."""
+    z = np.asarray(z, dtype=float)
+    over = ~np.isfinite(z) | (z <= 0.0) | (z > top)
+    ok = z[~over]
+    lo = float(np.min(ok)) if ok.size else 0.0
+    return np.linspace(min(lo, top - 1.0), top, 21), over
+
+
+def _bsfc_panel(ax, M, B, z, label: str):
+    """BSFC contours on a scale clipped at :data:`BSFC_PLOT_MAX_G_KWH`; cells above it (or with no positive
+    power, BSFC <= 0) are hatched grey and counted in the label."""
+    z = np.asarray(z, dtype=float)
+    levels, over = bsfc_scale(z)
+    cs = ax.contourf(M, B, np.where(over, np.nan, z), levels=levels, cmap="viridis")
+    if over.any():
+        ax.contourf(M, B, over.astype(float), levels=[0.5, 1.5], colors=["0.85"], hatches=["xx"])
+        label = f"{label}; hatched: > {BSFC_PLOT_MAX_G_KWH:.0f} ({100 * over.mean():.0f} % of the plane)"
+    return cs, label
 
 
 def plot_identification(ident, point_id: str, path: Path) -> Path:
@@ -69,8 +99,11 @@ def plot_identification(ident, point_id: str, path: Path) -> Path:
     fig, axes = plt.subplots(2, 3, figsize=(15, 8.5))
     for ax, (col, label, lines) in zip(axes.ravel(), panels):
         z = f[col]
-        cs = ax.contourf(M, B, z, levels=20, cmap="viridis")
-        fig.colorbar(cs, ax=ax, label=label)
+        if col == "bsfc_g_kwh":
+            cs, bar_label = _bsfc_panel(ax, M, B, z, label)
+        else:
+            cs, bar_label = ax.contourf(M, B, z, levels=20, cmap="viridis"), label
+        fig.colorbar(cs, ax=ax, label=bar_label)
         if col == "ca50_deg_atdc" and lines:
             ax.contourf(M, B, z, levels=lines, colors="w", alpha=0.35)
         if lines:
@@ -100,7 +133,7 @@ def plot_identification(ident, point_id: str, path: Path) -> Path:
                  f"({r['wiebe_m_lo']:.2f}-{r['wiebe_m_hi']:.2f}); dashed: power ridge; x: mirror rejected by "
                  f"{r.get('mirror_rejected_by', '')}", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    write_figure(fig, path, dpi=90)
     plt.close(fig)
     return Path(path)
 
@@ -135,6 +168,6 @@ def plot_eta_relation(eta: pd.DataFrame, isolines: pd.DataFrame, relation: pd.Da
         ax[2].legend(fontsize=6, ncol=2)
         ax[2].grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return Path(path)

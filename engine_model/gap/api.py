@@ -11,7 +11,7 @@ from engine_model.spec import EngineSpec, default_spec
 from engine_model.gap.covariance import DEFAULT_ERROR_MODEL
 from engine_model.gap.diagnose import GapDiagnosis, diagnose
 from engine_model.gap.fitting import operating_point_groups
-from engine_model.gap.residuals import check_bench_outputs
+from engine_model.gap.residuals import check_gap_bench
 from engine_model.effects import ETA_TRANS_BASE
 from engine_model.gap.linear import CURVED_BASE, BaseModel, calibrate_base, linearise
 from engine_model.gap.pairs import best_pair
@@ -109,10 +109,7 @@ def diagnose_bench(bench: pd.DataFrame, evaluate, spec: EngineSpec | None = None
         The diagnosis and ``{"theta", "history", "simulations", "base"}``.
     """
     spec = default_spec() if spec is None else spec
-    check_bench_outputs(bench, source)
-    missing = [c for c in PLAN_COLUMNS if c not in bench.columns]
-    if missing:
-        raise ValueError(f"{source}: missing column(s) {missing}; the operating point of each row is needed")
+    check_gap_bench(bench, source)
     plan = bench[list(PLAN_COLUMNS)].copy()
     plan["point_id"] = plan["point_id"].astype(str)
     if "status" in bench.columns:

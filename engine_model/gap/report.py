@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from engine_model.io import write_parquet, write_text
+from engine_model.io import write_figure, write_parquet, write_text
 from engine_model.report import write_report
 from engine_model.gap.diagnose import GapDiagnosis
 
@@ -51,7 +51,7 @@ def plot_residual_map(d: GapDiagnosis, path: Path) -> Path:
         ax.grid(alpha=0.3)
     fig.suptitle("Residual map after the base calibration (measured - model, in measurement sigmas)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -75,7 +75,7 @@ def plot_chain(d: GapDiagnosis, path: Path) -> Path:
     ax.set_ylabel("measured vs model torque [%]")
     ax.set_title("Energy chain: where the torque gap arises (mean over points, +- standard error)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -93,7 +93,7 @@ def plot_ranking(d: GapDiagnosis, path: Path) -> Path:
     ax.legend(fontsize=8)
     ax.set_title("Candidate ranking (K-fold over operating points)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -115,7 +115,7 @@ def plot_before_after(d: GapDiagnosis, path: Path) -> Path:
     ax.legend(fontsize=8)
     ax.set_title(f"Before/after (held-out overall: {d.gap_before:.2f} -> {d.gap_after:.2f} sigma)")
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    write_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -210,7 +210,7 @@ def write_benchmark_report(result: dict, out) -> dict:
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(folder / "benchmark_top1.png", dpi=100)
+    write_figure(fig, folder / "benchmark_top1.png", dpi=100)
     plt.close(fig)
     paths["figure"] = folder / "benchmark_top1.png"
     sections = [("Summary", [s]), ("Timing", [json.dumps(result.get("timing", {}))]),

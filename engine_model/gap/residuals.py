@@ -7,7 +7,9 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-__all__ = ["UNCERTAINTY", "REQUIRED_OUTPUTS", "sigma_of", "check_bench_outputs", "align_measured"]
+from engine_model.contracts import PLAN_COLUMNS, check_combustion_inputs
+
+__all__ = ["UNCERTAINTY", "REQUIRED_OUTPUTS", "sigma_of", "check_bench_outputs", "check_gap_bench", "align_measured"]
 
 
 #: Measurement uncertainty (1 sigma) per output: ('rel', fraction) or ('abs', value in the output's unit).
@@ -66,6 +68,35 @@ def check_bench_outputs(measured: pd.DataFrame, source: str = "bench") -> list[s
     # BSFC is fuel flow / power: redundant when fuel flow and torque are both measured
     if "fuel_mass_flow_kg_h" in usable and "bsfc_g_kwh" in usable:
         usable.remove("bsfc_g_kwh")
+    return usable
+
+
+def check_gap_bench(bench: pd.DataFrame, source: str = "bench") -> list[str]:
+    """Everything the diagnosis needs of a bench table, checked before any work; returns the usable outputs.
+
+    The operating point of every row (``point_id, speed_rpm, throttle_pct, spark_deg_btdc, lambda``)
+    and the measured outputs (:func:`check_bench_outputs`).
+
+    Raises
+    ------
+    ValueError
+        Naming ``source``, the row, the column and the value, and what was expected.
+    """
+    usable = check_bench_outputs(bench, source)
+    missing = [c for c in PLAN_COLUMNS if c not in bench.columns]
+    if missing:
+        raise ValueError(f"{source}: missing column(s) {missing}; the operating point of each row is needed "
+                         f"({', '.join(PLAN_COLUMNS)})")
+    ids = bench["point_id"]
+    empty = np.flatnonzero(ids.isna().to_numpy() | (ids.astype(str).str.strip() == "").to_numpy())
+    if empty.size:
+        raise ValueError(f"{source}: row {int(empty[0])}, column 'point_id': empty point id")
+    dup = ids.astype(str).duplicated(keep="first").to_numpy()
+    if dup.any():
+        i = int(np.flatnonzero(dup)[0])
+        raise ValueError(f"{source}: row {i}, column 'point_id': value {str(ids.iloc[i])!r} appears twice; "
+                         "ids must be unique")
+    check_combustion_inputs(bench, "gap", source)
     return usable
 
 

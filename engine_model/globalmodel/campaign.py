@@ -111,11 +111,14 @@ class CampaignResult:
         meas, ide, held = self.measured, self.identification_error, self.holdout_error
         out = [f"Virtual bench: {len(self.operating_points)} operating points (D-optimal over throttle x speed from "
                f"screened candidates, seed {settings.doe_seed}) x spark offsets {list(settings.spark_offsets)} deg = "
-               f"{len(meas)} bench points; status {meas['status'].value_counts().to_dict()}.",
+               f"{len(meas)} bench points; status "
+               + ", ".join(f"{k} {n}" for k, n in meas["status"].value_counts().items()) + ".",
                f"Joint spark-sweep identification at {ide['points']} of {ide['of']} operating points against the "
                f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
                f"m RMSE {ide['m_rmse']:.2f} (bias {ide['m_bias']:+.2f}).",
-               f"Global model (chosen per output by K-fold CV: {self.model.chosen_}); error against the hidden law "
+               "Global model (chosen per output by K-fold CV: "
+               + ", ".join(f"{k} {v}" for k, v in dict(self.model.chosen_).items())
+               + f"); error against the hidden law "
                f"on the {held['points']} runnable points of the {held['of']}-point hold-out grid: BDUR10-90 "
                f"{held['bdur_rmse_deg']:.2f} deg, m {held['m_rmse']:.2f}."]
         if self.fallback:

@@ -102,8 +102,11 @@ class EngineSpec:
             sec = getattr(self, section, None) if section != "sources" else None
             if not field or sec is None or not dataclasses.is_dataclass(sec) or \
                     field not in {f.name for f in dataclasses.fields(sec)}:
-                raise ValueError(f"spec override {key!r}: no such field (expected '<section>.<field>', e.g. "
-                                 "'intake.restrictor_cd')")
+                names = [f"{f.name}.{g.name}" for f in dataclasses.fields(self)
+                         if dataclasses.is_dataclass(getattr(self, f.name))
+                         for g in dataclasses.fields(getattr(self, f.name))]
+                raise ValueError(f"spec override {key!r}: no such field{_nearest(key, names)} (expected "
+                                 "'<section>.<field>', e.g. 'intake.restrictor_cd')")
             cur = getattr(sec, field)
             if isinstance(cur, bool):
                 val = bool(val)
@@ -144,9 +147,29 @@ _FREE_SECTIONS = ("calibration", "sources")
 _VALVE_KEYS = {"intake": ("opens_deg_btdc", "closes_deg_abdc"), "exhaust": ("opens_deg_bbdc", "closes_deg_atdc")}
 
 
-def _nearest(word: str, choices) -> str:
+def _nearest(word: str, choices, prefix: str = "") -> str:
     close = difflib.get_close_matches(word, list(choices), n=1, cutoff=0.5)
-    return f"; did you mean {close[0]!r}?" if close else ""
+    return f"; did you mean '{prefix}{close[0]}'?" if close else ""
+
+
+#: Unit of a key, from the suffix of its name (longest suffix first), for messages.
+_KEY_UNITS = (("_pa_s2_per_m2", "Pa s^2/m^2"), ("_pa_s_per_m", "Pa s/m"), ("_s_per_v", "s/V"),
+              ("_j_per_kg", "J/kg"), ("_kg_s", "kg/s"), ("_m3", "m^3"), ("_m2", "m^2"), ("_deg_btdc", "deg BTDC"),
+              ("_deg_abdc", "deg ABDC"), ("_deg_bbdc", "deg BBDC"), ("_deg_atdc", "deg ATDC"), ("_deg", "deg"),
+              ("_rpm", "rpm"), ("_pa", "Pa"), ("_m", "m"), ("_k", "K"), ("_s", "s"), ("_v", "V"))
+
+
+def _unit_of(key: str) -> str:
+    for suffix, unit in _KEY_UNITS:
+        if key.endswith(suffix):
+            return f" in {unit}"
+    return ""
+
+
+_KINDS = {"float": "a number", "int": "a whole number", "bool": "true or false", "str": "a text in quotes",
+          "tuple": "a list of numbers"}
+_TOML_KINDS = {"str": "a text (in quotes)", "int": "a whole number", "float": "a number", "bool": "true/false",
+               "list": "a list", "dict": "a table"}
 
 
 def _file_keys(name: str, cls) -> dict:
@@ -162,33 +185,61 @@ def _file_keys(name: str, cls) -> dict:
     return keys
 
 
+def _type_ok(want: str, val) -> bool:
+    if want.startswith("float"):
+        return isinstance(val, (int, float)) and not isinstance(val, bool)
+    if want.startswith("int"):
+        return isinstance(val, int) and not isinstance(val, bool)
+    if want.startswith("bool"):
+        return isinstance(val, bool)
+    if want.startswith("str"):
+        return isinstance(val, str)
+    if want.startswith("tuple"):
+        return isinstance(val, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in val)
+    return True
+
+
 def _check_section(tbl, name: str, cls, path) -> dict:
-    """The section as a dict; ValueError naming the file, section, key and value for an unknown key or a
-    value of the wrong type."""
+    """The section as a dict; ValueError naming the file, ``section.key`` and value for an unknown key (with
+    the nearest valid name) or a value of the wrong type (with the type and unit expected)."""
     if not isinstance(tbl, dict):
         raise ValueError(f"{path}: [{name}] must be a table of keys, got {type(tbl).__name__}")
     keys = _file_keys(name, cls)
     for key, val in tbl.items():
         if key not in keys:
-            raise ValueError(f"{path}: [{name}] unknown key {key!r}{_nearest(key, keys)} "
-                             f"(known: {', '.join(sorted(keys))})")
+            raise ValueError(f"{path}: unknown key {name}.{key}{_nearest(key, keys, name + '.')} "
+                             f"(keys of [{name}]: {', '.join(sorted(keys))})")
         want = keys[key]
-        ok = True
-        if want.startswith("float"):
-            ok = isinstance(val, (int, float)) and not isinstance(val, bool)
-        elif want.startswith("int"):
-            ok = isinstance(val, int) and not isinstance(val, bool)
-        elif want.startswith("bool"):
-            ok = isinstance(val, bool)
-        elif want.startswith("str"):
-            ok = isinstance(val, str)
-        elif want.startswith("tuple"):
-            ok = isinstance(val, list) and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in val)
-        if not ok:
-            kind = {"float": "a number", "int": "a whole number", "bool": "true or false", "str": "a text",
-                    "tuple": "a list of numbers"}.get(want.split("[")[0], want)
-            raise ValueError(f"{path}: [{name}] {key} = {val!r} ({type(val).__name__}): expected {kind}")
+        if not _type_ok(want, val):
+            kind = _KINDS.get(want.split("[")[0], want)
+            got = _TOML_KINDS.get(type(val).__name__, type(val).__name__)
+            hint = "; write it without quotes" if isinstance(val, str) and kind.startswith("a number") else ""
+            raise ValueError(f"{path}: {name}.{key} = {val!r} is {got}, expected {kind}{_unit_of(key)}{hint}")
     return dict(tbl)
+
+
+#: Keys of the ``[calibration]`` record a calibrated engine file carries.
+_CALIBRATION_KEYS = {"base_spec_hash": "str", "source": "str", "overrides": "dict"}
+
+
+def _check_calibration(tbl, path) -> None:
+    if not isinstance(tbl, dict):
+        raise ValueError(f"{path}: [calibration] must be a table of keys, got {type(tbl).__name__}")
+    for key, val in tbl.items():
+        if key not in _CALIBRATION_KEYS:
+            raise ValueError(f"{path}: unknown key calibration.{key}"
+                             f"{_nearest(key, _CALIBRATION_KEYS, 'calibration.')} "
+                             f"(keys of [calibration]: {', '.join(_CALIBRATION_KEYS)})")
+        want = _CALIBRATION_KEYS[key]
+        if type(val).__name__ != want:
+            raise ValueError(f"{path}: calibration.{key} = {val!r} is "
+                             f"{_TOML_KINDS.get(type(val).__name__, type(val).__name__)}, expected "
+                             f"{_TOML_KINDS[want]}")
+    for key, val in tbl.get("overrides", {}).items():
+        if not isinstance(val, (int, float)) or isinstance(val, bool):
+            raise ValueError(f"{path}: calibration.overrides.{key} = {val!r} is "
+                             f"{_TOML_KINDS.get(type(val).__name__, type(val).__name__)}, expected a number"
+                             f"{_unit_of(key)}")
 
 
 def _valves_from_toml(tbl: dict, side: str) -> ValveSet:
@@ -210,7 +261,16 @@ def spec_from_dict(doc: dict, path="<dict>") -> EngineSpec:
     value.
     """
     for name in doc:
-        if name == "name" or name in _FREE_SECTIONS:
+        if name == "name":
+            if not isinstance(doc[name], str):
+                raise ValueError(f"{path}: name = {doc[name]!r} is "
+                                 f"{_TOML_KINDS.get(type(doc[name]).__name__, type(doc[name]).__name__)}, "
+                                 "expected a text in quotes")
+            continue
+        if name == "calibration":
+            _check_calibration(doc[name], path)
+            continue
+        if name in _FREE_SECTIONS:
             continue
         if name not in SECTIONS:
             raise ValueError(f"{path}: unknown section [{name}]{_nearest(name, SECTIONS)} "

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..io import write_figure
 from .ecu_table import LOAD_KINDS, EcuTable, resample
 
 __all__ = ["compare", "plot_difference"]
@@ -97,6 +98,6 @@ def plot_difference(diff: pd.DataFrame, path, title: str | None = None) -> Path:
     fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, format="png")
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path

@@ -33,7 +33,6 @@ from __future__ import annotations
 import math
 import os
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -41,7 +40,7 @@ import numpy as np
 import pandas as pd
 
 from .. import thermo
-from ..io import write_text
+from ..io import make_temp_dir, write_text
 from ..spec import EngineSpec
 from .ecu_csv import write_csv
 from .ecu_dcm import write_dcm
@@ -373,7 +372,7 @@ def write_exports(es: ExportSet, out_dir, formats=tuple(EXPORT_FORMATS), readme:
     extra = []
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = make_temp_dir(out.parent, f".{out.name}.")   # the umask's folder mode, not mkdtemp's 0700
     files = {}
     try:
         for t in es.tables:

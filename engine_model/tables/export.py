@@ -27,17 +27,17 @@ import dataclasses
 import json
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
+from engine_model.io import make_temp_dir, write_figure
 from engine_model.spec import EngineSpec
 from engine_model.tables.ecu_export import ExportOptions, export_tables, write_exports
 from engine_model.tables.settings import MapResult
 
-__all__ = ["TABLES", "long_form", "wide_table", "plot_table", "write_ecu_files", "write_maps"]
+__all__ = ["TABLES", "long_form", "wide_table", "plot_table", "cell_label", "write_ecu_files", "write_maps"]
 
 #: table name -> (cell column, unit, decimals in the CSV, source column or fixed source, title)
 TABLES = {
@@ -78,11 +78,19 @@ def wide_table(result: MapResult, name: str) -> pd.DataFrame:
     return wide
 
 
+def cell_label(name: str, value: float, dec: int, limited_by: str) -> str:
+    """Text of one heatmap cell: the value (one decimal less than the CSV from 2 decimals on), with an
+    asterisk on a knock-limited cell of a spark table (no letter suffix, which would read as a unit)."""
+    txt = f"{value:.{max(dec - 1, 0) if dec > 1 else dec}f}"
+    return txt + "*" if name.startswith("spark") and limited_by == "knock" else txt
+
+
 def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Path:
     """Heatmap of one table (rows throttle %, columns rpm), values written in the cells, infeasible cells hatched.
 
-    Spark tables mark knock-limited cells with a 'k' and MBT-limited ones
-    with nothing; infeasible cells (paper's Figure 1 zones) are hatched.
+    Spark tables mark knock-limited cells with an asterisk after the value and an orange outline
+    (MBT-limited ones with nothing); infeasible cells (paper's Figure 1 zones) are hatched.  Speed ticks
+    are in 1000 rpm, so no cell value carries a unit-like suffix.
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -101,23 +109,24 @@ def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Pat
                 ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="///", edgecolor="white",
                                            linewidth=0))
             if annotate and np.isfinite(vals[i, j]):
-                txt = f"{vals[i, j]:.{max(dec - 1, 0) if dec > 1 else dec}f}"
-                if name.startswith("spark") and lim[i, j] == "knock":
-                    txt += "k"
+                txt = cell_label(name, vals[i, j], dec, lim[i, j])
+            if name.startswith("spark") and lim[i, j] == "knock":
+                ax.add_patch(plt.Rectangle((j - 0.46, i - 0.46), 0.92, 0.92, fill=False, edgecolor="tab:orange",
+                                           linewidth=1.2))
                 ax.text(j, i, txt, ha="center", va="center", fontsize=6.5,
                         color="white" if im.norm(vals[i, j]) < 0.6 else "black")
-    ax.set_xticks(range(ns), [f"{n / 1000:g}k" for n in result.grid.speed_rpm], fontsize=8)
+    ax.set_xticks(range(ns), [f"{n / 1000:g}" for n in result.grid.speed_rpm], fontsize=8)
     ax.set_yticks(range(nt), [f"{t:g}" for t in result.grid.throttle_pct], fontsize=8)
-    ax.set_xlabel("engine speed [rpm]")
+    ax.set_xlabel("engine speed [1000 rpm]")
     ax.set_ylabel("throttle [%]")
     note = "hatched: infeasible"
     if name.startswith("spark"):
-        note += "; k: knock-limited"
+        note += "; *: knock-limited (outlined)"
     ax.set_title(f"{title}\n{note}", fontsize=8)
     fig.colorbar(im, ax=ax, label=unit, fraction=0.04, pad=0.02)
     fig.tight_layout()
     path = Path(path)
-    fig.savefig(path, dpi=110)
+    write_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 
@@ -165,7 +174,7 @@ def write_maps(result: MapResult, out_dir, figures: bool = True, spec: EngineSpe
     """
     out = Path(out_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    tmp = make_temp_dir(out.parent, f".{out.name}.")   # the umask's folder mode, not mkdtemp's 0700
     names = {}
     try:
         long_form(result).to_parquet(tmp / "ecu_tables.parquet", index=False)

@@ -92,11 +92,13 @@ def run(ctx: StageContext) -> dict:
                     "rms_ga_rel_pct": round(match.rms_ga_rel_pct, 3),
                     "max_abs_ga_rel_pct": round(match.max_abs_ga_rel_pct, 3),
                     "misses_1pct": {r.point_id: round(r.ga_rel_pct, 2) for r in match.misses().itertuples()},
-                    "at_bound": match.at_bound, "simulations": ev_air.points, "seconds": round(t_air, 1)},
+                    "at_bound": match.at_bound, "simulations": ev_air.points, "seconds": round(t_air, 1),
+                    "bounds": {p.name: [p.low, p.high] for p in cal.DEFAULT_PARAMETERS if p.name in match.values}},
         "identification": {"points": len(params), "fit_ok": int(params["fit_ok"].sum()),
                            "grid": [s.n_bdur, s.n_m], "surface": s.surface,
                            "simulations": ev_id.points, "seconds": round(t_id, 1),
-                           "eta_trans": s.eta_trans, "per_point": _per_point(params)},
+                           "eta_trans": s.eta_trans, "per_point": _per_point(params),
+                           "search_range": {"bdur_10_90_deg": list(cal.BDUR_RANGE_DEG), "wiebe_m": list(cal.M_RANGE)}},
         "eta_relation": rel_text,
         "joint_fit": joint.summary(),
         "joint_eta": _joint_summary(joint, params_joint),
@@ -225,8 +227,10 @@ def summary_text(summary: dict) -> str:
 def calibrate_flow(out: str, bench: str | None = None, spec: str | None = None, eta_trans: float = 0.95,
                    step_deg: float = 0.5, workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
                    n_bdur: int = 11, n_m: int = 13, airflow_grid: tuple = (6, 6, 1), airflow_max_nfev: int = 12,
-                   airflow_step_deg: float = 1.0, progress: bool = True) -> dict:
+                   airflow_step_deg: float = 1.0, progress: bool = True, throttle_unit: str = "pct") -> dict:
     """Airflow matching and combustion identification of ``bench`` (packaged Table 2 by default) into ``out``.
+
+    ``throttle_unit`` "fraction" reads the bench file's ``throttle_pct`` as 0-1 and converts it to percent.
 
     Writes ``out/calibration/`` and the calibrated engine ``out/engine.toml`` (``--spec`` of later commands).
     """
@@ -237,7 +241,8 @@ def calibrate_flow(out: str, bench: str | None = None, spec: str | None = None, 
                                                                n_m=n_m, airflow_step_deg=airflow_step_deg))
     with shared_cluster(workers, dask_address) as addr:
         ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr, settings=settings,
-                           bench=load_bench(bench), bench_source=str(bench or "packaged Table 2"), progress=progress)
+                           bench=load_bench(bench, throttle_unit), bench_source=str(bench or "packaged Table 2"),
+                           progress=progress)
         summary = run(ctx)
     ctx.with_engine(calibrated_engine(engine, summary))
     return summary
@@ -246,7 +251,7 @@ def calibrate_flow(out: str, bench: str | None = None, spec: str | None = None, 
 def run_calibration(out, bench=None, spec=None, **kwargs) -> dict:
     """``mbc calibrate``: validate inputs, then run :func:`calibrate_flow` under one Prefect API."""
     CalibratedEngine.from_spec(spec)
-    load_bench(bench)
+    load_bench(bench, kwargs.get("throttle_unit", "pct"))
     cal.grid_axes(kwargs.get("n_bdur", 11), kwargs.get("n_m", 13))   # bad grid sizes fail before any work
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = calibrate_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)

@@ -31,20 +31,30 @@ from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.gap.api import diagnose_bench  # noqa: E402
 from engine_model.gap.bench_procedure import LINEARISATION_TOLERANCE  # noqa: E402
 from engine_model.gap.report import write_gap_report  # noqa: E402
-from engine_model.gap.residuals import check_bench_outputs  # noqa: E402
+from engine_model.contracts import throttle_to_pct  # noqa: E402
+from engine_model.gap.residuals import check_gap_bench  # noqa: E402
 from engine_model.io import read_table, write_json  # noqa: E402
+from engine_model.report import format_parameters  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
 
-def _read_bench(bench: str | None):
-    """Packaged Table 2 by default; any bench-contract file otherwise (virtual-bench output included)."""
+def _read_bench(bench: str | None, throttle_unit: str = "pct"):
+    """Packaged Table 2 by default; any bench-contract file otherwise (virtual-bench output included).
+
+    Every column the diagnosis needs is checked here, so a bad bench file fails before any server,
+    cluster or folder; ``throttle_unit`` "fraction" converts a 0-1 throttle column to percent.
+    """
     if bench is None:
         return load_bench(None), "engine_model/data/r6_wot_table2.csv (paper Table 2)"
     p = Path(bench)
     if not p.is_file():
         raise ValueError(f"bench file not found: {p}")
-    df = read_table(p)
-    check_bench_outputs(df, str(p))
+    try:
+        df = read_table(p)
+    except ValueError as exc:
+        raise ValueError(f"bench file {exc}") from None
+    df = throttle_to_pct(df, f"bench file {p}", throttle_unit)
+    check_gap_bench(df, f"bench file {p}")
     return df, str(p)
 
 
@@ -56,7 +66,9 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
     ev = ctx.evaluator("gap", tolerance=LINEARISATION_TOLERANCE)
     d, info = diagnose_bench(ctx.bench, ev, spec=spec, n_noise=n_noise, source=ctx.bench_source)
     notes = [f"Bench: {ctx.bench_source}. Engine: {ctx.engine.source}, calibrated values "
-             f"{ctx.engine.overrides or 'none'}. Base calibration parameters: {info['theta']} (base: {info['base']}). "
+             f"{format_parameters(ctx.engine.overrides) or 'none'}. Base calibration parameters: "
+             f"{format_parameters(info['theta']) if isinstance(info['theta'], dict) else info['theta']} "
+             f"(base: {info['base']}). "
              f"{ev.points} simulations in {ev.calls} sweep batches."]
     paths = write_gap_report(d, ctx.work, notes=notes)
     summary = {"kind": "gap", "package_version": package_version(), "spec_hash": spec.spec_hash(),
@@ -77,13 +89,13 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
 @flow(name="gap", log_prints=False, validate_parameters=False)
 def gap_flow(out: str, bench: str | None = None, spec: str | None = None, step_deg: float = 0.5,
              workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
-             n_noise: int = 200, overrides: dict | None = None) -> dict:
+             n_noise: int = 200, overrides: dict | None = None, throttle_unit: str = "pct") -> dict:
     """Gap diagnosis of ``bench`` (packaged Table 2 by default) into ``<out>/gap/``.
 
     ``overrides`` ({"section.field": value}) fixes spec values from an earlier calibration step
     (e.g. the airflow match) for every simulation.
     """
-    df, source = _read_bench(bench)
+    df, source = _read_bench(bench, throttle_unit)
     engine = CalibratedEngine.from_spec(spec).calibrated(overrides or {})
     with shared_cluster(workers, dask_address) as addr:
         ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr,
@@ -127,8 +139,9 @@ def small_settings() -> dict:
 
 
 def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
-    """``mbc gap``: validate inputs, then run :func:`gap_flow` under one Prefect API."""
-    _read_bench(bench)
+    """``mbc gap``: validate inputs (before any server, cluster or folder), then run :func:`gap_flow` under one
+    Prefect API."""
+    _read_bench(bench, kwargs.get("throttle_unit", "pct"))
     CalibratedEngine.from_spec(spec).calibrated(kwargs.get("overrides") or {})   # bad spec or override: fails here
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = gap_flow(out=str(out), bench=None if bench is None else str(bench), spec=spec, **kwargs)
