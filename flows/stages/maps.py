@@ -9,6 +9,7 @@ No physics here: the stage wires the evaluations to Dask and writes the files.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import os
 import time
@@ -47,10 +48,12 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     """Build the tables with ``model`` on ``grid`` and write them into ``ctx.work/maps``; returns the summary."""
     t0 = time.perf_counter()
     eng = ctx.engine.spec
+    st = MapSettings() if st is None else st
     res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator("maps"), settings=st)
     paths = write_maps(res, ctx.work / "maps")
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
+               "settings": dataclasses.asdict(st),   # what a rebuild (mbc maps --run) starts from
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
                "files": {k: os.path.relpath(v, ctx.work) for k, v in paths.items()},   # relative: the run folder is renamed
                "wall_s": round(time.perf_counter() - t0, 1)}
@@ -99,6 +102,8 @@ def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None
              **kwargs) -> dict:
     """``mbc maps``: validate inputs, then run :func:`maps_flow` under one Prefect API."""
     _inputs(str(model), spec, throttle, speed, lambda_table, settings, grid)
+    if kwargs.get("step_deg") is None:
+        kwargs.pop("step_deg", None)
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = maps_flow(model=str(model), out=str(out), spec=spec, throttle=throttle, speed=speed,
                         lambda_table=None if lambda_table is None else str(lambda_table), settings=settings,
