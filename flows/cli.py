@@ -3,11 +3,11 @@
     mbc run      main job: bench data -> sweep on Dask -> report, under results/<run-id>/
     mbc sweep    simulate any plan of operating points in chunks on Dask workers (resumable)
     mbc plan     generate a DOE test plan into doe_plans/
-    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file
+    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file or a finished run
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
-    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks)
+    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks), or of a run
     mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
     mbc gap-plan       propose bench points that tell the gap library's effects apart
 
