@@ -140,3 +140,17 @@ def test_mbc_run_stages_naming_no_stage_is_refused(tmp_path, capsys):
     assert main(["run", "--quick", "--stages", ",", "--out", str(tmp_path / "r")]) == 2
     assert "names no stage" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_mbc_maps_run_in_place_with_another_grid(run_copy, capsys):
+    """An override (here the throttle breakpoints) is built in place on its own sweeps and recorded in the
+    manifest, so the run's record says what its maps/ holds and a later rebuild repeats it."""
+    import pandas as pd
+
+    out = run_copy
+    assert main(["maps", "--run", str(out), "--throttle", "60,100"]) == 0
+    spark = pd.read_csv(out / "maps" / "spark_advance.csv", index_col=0)
+    assert spark.shape == (2, 3) and [float(v) for v in spark.index] == [60.0, 100.0]
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["settings"]["map_throttle"] == "60,100" and man["settings"]["map_speed"] == "6000,9000,12000"
+    assert man["maps"]["stats"]["cells"] == 6
