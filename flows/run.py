@@ -22,9 +22,9 @@ from __future__ import annotations
 import dataclasses
 import datetime as _dt
 import shutil
-from importlib import resources
 import sys
 import time
+from importlib import resources
 from pathlib import Path
 
 from flows import prefect_env
