@@ -3,11 +3,11 @@
     mbc run      main job: bench data -> sweep on Dask -> report, under results/<run-id>/
     mbc sweep    simulate any plan of operating points in chunks on Dask workers (resumable)
     mbc plan     generate a DOE test plan into doe_plans/
-    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file
+    mbc maps     ECU spark-advance / injection-time / lambda tables from a combustion model file or a finished run
     mbc serve    serve Prefect deployments (parameterised sweep, scheduled bench-folder watcher)
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
-    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks)
+    mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks), or of a run
     mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
     mbc gap-plan       propose bench points that tell the gap library's effects apart
 
@@ -121,9 +121,16 @@ def cmd_maps(args) -> int:
                                   ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v),
                                   ("knock_uncertainty_z", args.knock_uncertainty_z))
                 if v is not None}
-    run_maps(args.model, args.out, spec=args.spec, throttle=args.throttle, speed=args.speed,
-             lambda_table=args.lambda_table, settings=settings, grid=args.grid, step_deg=args.step_deg,
-             workers=args.workers, dask_address=args.dask_address)
+    kw = dict(throttle=args.throttle, speed=args.speed, lambda_table=args.lambda_table, settings=settings,
+              grid=args.grid, step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address)
+    if args.run:
+        from flows.rebuild import rebuild_maps
+
+        rebuild_maps(args.run, args.out, model=args.model, spec=args.spec, **kw)
+        return 0
+    if not (args.model and args.out):
+        raise ValueError("mbc maps: give --run DIR (a finished `mbc run` folder), or --model FILE and --out DIR")
+    run_maps(args.model, args.out, spec=args.spec, **kw)
     return 0
 
 
@@ -170,8 +177,16 @@ def cmd_gap(args) -> int:
             raise ValueError(f"--override {item!r}: expected SECTION.FIELD=NUMBER, e.g. intake.restrictor_cd=0.9") from None
         if not sep:
             raise ValueError(f"--override {item!r}: expected SECTION.FIELD=NUMBER")
-    run_gap(out=args.out, bench=args.bench, spec=args.spec, step_deg=args.step_deg, workers=args.workers,
-            dask_address=args.dask_address, overrides=overrides or None, throttle_unit=args.throttle_unit)
+    kw = dict(bench=args.bench, spec=args.spec, workers=args.workers, dask_address=args.dask_address,
+              overrides=overrides or None, throttle_unit=args.throttle_unit)
+    if args.run:
+        from flows.rebuild import rebuild_gap
+
+        rebuild_gap(args.run, args.out, step_deg=args.step_deg, **kw)
+        return 0
+    if not args.out:
+        raise ValueError("mbc gap: give --out DIR, or --run DIR (a finished `mbc run` folder)")
+    run_gap(out=args.out, step_deg=0.5 if args.step_deg is None else args.step_deg, **kw)
     return 0
 
 
@@ -276,8 +291,11 @@ def build_parser() -> argparse.ArgumentParser:
     c.set_defaults(func=cmd_calibrate)
 
     mp = sub.add_parser("maps", help="ECU tables (spark advance, injection time, lambda) from a combustion model")
-    mp.add_argument("--model", required=True, help="combustion model file (fitted global model, or prior JSON)")
-    mp.add_argument("--out", required=True, help="output folder; tables go to OUT/maps/, sweeps to OUT/sweeps/")
+    mp.add_argument("--run", default=None, help="finished `mbc run` folder: its model, engine, grid, step and "
+                    "settings (options given here win); writes into RUN/maps/ (and its index) unless --out")
+    mp.add_argument("--model", default=None, help="combustion model file (fitted global model, or prior JSON); "
+                    "not with --run")
+    mp.add_argument("--out", default=None, help="output folder; tables go to OUT/maps/, sweeps to OUT/sweeps/")
     mp.add_argument("--throttle", default=None, help="throttle breakpoints [%%], '0,5,10,...' or 'start:stop:step'")
     mp.add_argument("--speed", default=None, help="speed breakpoints [rpm], e.g. '1000:13000:1000' (the default)")
     mp.add_argument("--grid", default=None, help="take the breakpoints from a wide table CSV (e.g. an ECU export)")
@@ -290,7 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="retard the knock border by z sigmas of the model's CA50-offset uncertainty (default 1; 0 turns it off)")
     common(mp)
     dask(mp)
-    mp.set_defaults(func=cmd_maps)
+    mp.set_defaults(func=cmd_maps, step_deg=None)   # None: the run's step with --run, else 0.5
 
     ex = sub.add_parser("export", help="a run's spark / fuel / lambda tables as ECU files on the ECU's breakpoints")
     ex.add_argument("--run", required=True, help="run folder holding maps/cells.parquet (and engine.toml)")
@@ -337,13 +355,15 @@ def build_parser() -> argparse.ArgumentParser:
     sv.set_defaults(func=cmd_serve)
     gp = sub.add_parser("gap", help="sim-to-real gap diagnosis of bench data into <out>/gap/")
     gp.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
-    gp.add_argument("--out", required=True, help="output folder (report under <out>/gap/)")
+    gp.add_argument("--run", default=None, help="finished `mbc run` folder: its engine and bench-data copy "
+                    "(--bench wins); writes into RUN/gap/ (and its index) unless --out")
+    gp.add_argument("--out", default=None, help="output folder (report under <out>/gap/)")
     gp.add_argument("--override", action="append", metavar="SECTION.FIELD=VALUE",
                     help="spec value from an earlier calibration step, e.g. intake.restrictor_cd=0.85 (repeatable)")
     common(gp)
     dask(gp)
     throttle_unit_option(gp)
-    gp.set_defaults(func=cmd_gap)
+    gp.set_defaults(func=cmd_gap, step_deg=None)   # None: the run's step with --run, else 0.5
 
     gb = sub.add_parser("gap-benchmark", help="gap diagnosis on withheld effects -> <out>/gap/gap_benchmark.csv")
     gb.add_argument("--out", required=True, help="output folder")

@@ -24,26 +24,30 @@ import datetime as _dt
 import shutil
 import sys
 import time
+from importlib import resources
 from pathlib import Path
 
 from flows import prefect_env
 from flows.evaluate import shared_cluster
 from flows.settings import QUICK, STAGES, RunSettings, settings_from_dict, settings_to_dict  # noqa: F401
 from flows.stages import calibration, gap, maps, model
-from flows.stages.context import ENGINE_FILE, StageContext
+from flows.stages.context import BENCH_FILE, ENGINE_FILE, StageContext
 from flows.sweep import DEFAULT_WORKERS
 
 from prefect import flow  # noqa: E402
 
-from engine_model.bench import load_bench  # noqa: E402
+from engine_model.bench import load_bench, packaged_bench_path  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
-from engine_model.io import write_json  # noqa: E402
+from engine_model.contracts import throttle_to_pct  # noqa: E402
+from engine_model.io import read_table, write_json, write_parquet  # noqa: E402
 from engine_model.report import format_mapping, format_parameters, format_value, write_index  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
 #: What a stage leaves in the run folder that a later stage needs (checked when the stage is not run).
 STAGE_OUTPUTS = {"calibration": (ENGINE_FILE, "calibration/summary.json"), "model": ("model/model.json",),
                  "maps": ("maps/ecu_tables.parquet",), "gap": ("gap/run.json",)}
+#: How the manifest names the packaged bench data.
+PACKAGED_BENCH = "packaged Table 2 (paper, WOT, lambda 0.9)"
 #: Which earlier stages each stage needs.
 NEEDS = {"calibration": (), "model": ("calibration",), "maps": ("calibration", "model"), "gap": ("calibration",)}
 
@@ -64,6 +68,48 @@ def check_stage_inputs(folder: Path, stages: tuple[str, ...]) -> None:
                 raise ValueError(f"--stages {','.join(stages)}: stage '{st}' needs the '{need}' stage's output "
                                  f"{missing} in {folder}, which is not there; add '{need}' to --stages or give "
                                  "--out a finished run that has it")
+
+
+def run_bench(folder: Path, bench, stages: tuple[str, ...]) -> tuple[str | None, str]:
+    """(bench file or None for the packaged data, how the manifest names it) for a run into ``folder``.
+
+    ``--bench`` wins.  Without it, a run that does not re-run the calibration takes the copy of the bench
+    data an earlier run of the folder kept (:data:`BENCH_FILE`, the data the engine was calibrated on);
+    a folder calibrated on other data that kept no copy is refused (ValueError) rather than diagnosed on
+    the packaged data.
+    """
+    if bench is not None:
+        return str(bench), str(bench)
+    if "calibration" in stages:
+        return None, PACKAGED_BENCH
+    old = _manifest(folder).get("bench", PACKAGED_BENCH)
+    if (folder / BENCH_FILE).is_file():
+        return str(folder / BENCH_FILE), old
+    if old != PACKAGED_BENCH:
+        raise ValueError(f"{folder} was calibrated on the bench data '{old}' and holds no copy ({BENCH_FILE}); "
+                         "give that file with --bench")
+    return None, PACKAGED_BENCH
+
+
+def _manifest(folder: Path) -> dict:
+    """The run's manifest.json ({} when missing or unreadable)."""
+    import json
+
+    try:
+        return json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def _keep_bench_copy(bench: str | None, work: Path, throttle_unit: str = "pct") -> None:
+    """The bench data as read (before validation; throttle in percent) into ``work/bench.parquet``, for later
+    stages and rebuilds."""
+    if bench is None:
+        with resources.as_file(packaged_bench_path()) as p:
+            raw = read_table(p)
+    else:
+        raw = read_table(bench)
+    write_parquet(throttle_to_pct(raw, f"bench file {bench}", throttle_unit), work / BENCH_FILE)
 
 
 def _previous(work: Path, manifest: dict, stage: str) -> dict:
@@ -93,13 +139,17 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
     rs = settings_from_dict(settings)
     t0 = time.perf_counter()
     engine = CalibratedEngine.from_spec(spec)
-    meas = load_bench(bench, throttle_unit)
-    source = "packaged Table 2 (paper, WOT, lambda 0.9)" if bench is None else str(bench)
     final = Path(out)
     work = final.with_name(final.name + ".partial")
     if final.exists() and not work.exists():
         final.rename(work)          # update in place: the sweeps inside resume
+    given = bench
+    bench, source = run_bench(work, bench, rs.stages)
+    unit = throttle_unit if given is not None else "pct"    # the run's own copy is kept in percent
+    meas = load_bench(bench, unit)
     work.mkdir(parents=True, exist_ok=True)
+    if "calibration" in rs.stages:
+        _keep_bench_copy(bench, work, unit)
     man: dict = {"kind": "run", "package_version": package_version(), "engine": engine.spec.name,
                  "spec_hash": engine.spec_hash(), "bench": source, "settings": dataclasses.asdict(rs),
                  "stages": list(rs.stages), "quick": rs.quick}
@@ -238,10 +288,24 @@ def run_pipeline(out=None, bench=None, spec=None, settings: RunSettings | None =
     """Validate the inputs, then run :func:`run_flow` under one Prefect API for the whole run."""
     rs = RunSettings() if settings is None else settings
     engine = CalibratedEngine.from_spec(spec)
-    load_bench(bench, kwargs.get("throttle_unit", "pct"))   # bad bench data fails here, before any folder exists
     final = Path(out) if out else default_run_dir(engine.spec_hash())
     folder = final if final.exists() else final.with_name(final.name + ".partial")
     check_stage_inputs(folder, rs.stages)
+    unit = kwargs.get("throttle_unit", "pct") if bench is not None else "pct"   # the run's copy is in percent
+    load_bench(run_bench(folder, bench, rs.stages)[0], unit)   # bad bench data fails here, before any folder exists
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         return run_flow(out=str(final), bench=None if bench is None else str(bench), spec=spec,
                         settings=settings_to_dict(rs), **kwargs)
+
+
+def record_stage(folder: Path, name: str, summary: dict, wall_s: float, settings: dict | None = None) -> dict:
+    """Enter stage ``name`` re-run on the finished run ``folder`` (``mbc maps --run``, ``mbc gap --run``) into
+    its manifest.json and index.html, as ``mbc run --stages NAME`` records it; ``settings``: run settings the
+    re-run changed (e.g. the ECU breakpoints).  Returns the new manifest."""
+    man = _manifest(folder)
+    man.update({name: summary, "stages": [name], "timings_s": {name: round(wall_s, 1)}, "wall_time_s": round(wall_s, 1),
+                "created": _dt.datetime.now().isoformat(timespec="seconds"),
+                "settings": {**man.get("settings", {}), **(settings or {}), "stages": [name]}})
+    write_json(man, folder / "manifest.json")
+    _write_index(folder, man)
+    return man

@@ -22,6 +22,8 @@ def parse_stages(text: str | None) -> tuple[str, ...]:
     bad = [s for s in asked if s not in STAGES]
     if bad:
         raise ValueError(f"--stages: unknown stage(s) {bad}; known: {','.join(STAGES)}")
+    if not asked:
+        raise ValueError(f"--stages {text!r}: names no stage; give some of {','.join(STAGES)}")
     return tuple(s for s in STAGES if s in asked)
 
 

@@ -14,6 +14,8 @@ from flows.settings import RunSettings
 
 #: File name of the calibrated engine in a run folder (a TOML engine spec ``--spec`` accepts).
 ENGINE_FILE = "engine.toml"
+#: File name of the run's copy of the bench data it was calibrated on (as read, before validation).
+BENCH_FILE = "bench.parquet"
 
 
 @dataclass(frozen=True)

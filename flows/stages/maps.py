@@ -9,12 +9,14 @@ No physics here: the stage wires the evaluations to Dask and writes the files.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
+import json
 import os
 import time
 from pathlib import Path
 
-from flows import prefect_env
+from flows import prefect_env, store
 from flows.evaluate import shared_cluster
 from flows.settings import RunSettings
 from flows.stages.context import StageContext
@@ -42,15 +44,31 @@ def ecu_grid(throttle: str | None, speed: str | None, grid_csv: str | None = Non
                    parse_breakpoints(speed, "speed") if speed else EcuGrid().speed_rpm)
 
 
+def batch_label(model_file, grid: EcuGrid, lam: LambdaTable | None, st: MapSettings, spec_hash: str,
+                step_deg: float) -> str:
+    """Sweep label of the maps batches, from every input: the same inputs resume the same sweep folders,
+    other inputs (a rebuild with another grid or settings) get their own, since a sweep folder refuses a
+    different plan."""
+    parts = {"model": store.sha256_text(Path(model_file).read_text()) if model_file else None,
+             "throttle": [float(v) for v in grid.throttle_pct], "speed": [float(v) for v in grid.speed_rpm],
+             "lambda": None if lam is None else repr(lam), "settings": dataclasses.asdict(st), "spec": spec_hash,
+             "step_deg": step_deg}
+    return "maps-" + store.sha256_text(json.dumps(parts, sort_keys=True, default=str))[:8]
+
+
 def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None = None,
-               st: MapSettings | None = None) -> dict:
-    """Build the tables with ``model`` on ``grid`` and write them into ``ctx.work/maps``; returns the summary."""
+               st: MapSettings | None = None, model_file=None) -> dict:
+    """Build the tables with ``model`` (read from ``model_file``) on ``grid`` and write them into
+    ``ctx.work/maps``; returns the summary."""
     t0 = time.perf_counter()
     eng = ctx.engine.spec
-    res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator("maps"), settings=st)
+    st = MapSettings() if st is None else st
+    label = batch_label(model_file, grid, lam, st, eng.spec_hash(), ctx.settings.step_deg)
+    res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator(label), settings=st)
     paths = write_maps(res, ctx.work / "maps", spec=eng)
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
+               "settings": dataclasses.asdict(st),   # what a rebuild (mbc maps --run) starts from
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
                "files": {k: os.path.relpath(v, ctx.work) for k, v in paths.items()},   # relative: the run folder is renamed
                "wall_s": round(time.perf_counter() - t0, 1)}
@@ -62,7 +80,7 @@ def run(ctx: StageContext) -> dict:
     """The maps stage of a run: the global model of the model stage on the run's ECU grid."""
     model = load_model(ctx.work / MODEL_FILE)
     grid = ecu_grid(ctx.settings.map_throttle, ctx.settings.map_speed)
-    res = build_into(ctx, model, grid)
+    res = build_into(ctx, model, grid, model_file=ctx.work / MODEL_FILE)
     return {"stats": res["stats"], "files": res["files"]}
 
 
@@ -92,13 +110,15 @@ def maps_flow(model: str, out: str, spec: str | None = None, throttle: str | Non
     with shared_cluster(workers, dask_address) as addr:
         ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr,
                            settings=RunSettings(step_deg=step_deg, stages=("maps",)), progress=progress)
-        return build_into(ctx, mdl, grid, lam, st)
+        return build_into(ctx, mdl, grid, lam, st, model_file=model)
 
 
 def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None, settings=None, grid=None,
              **kwargs) -> dict:
     """``mbc maps``: validate inputs, then run :func:`maps_flow` under one Prefect API."""
     _inputs(str(model), spec, throttle, speed, lambda_table, settings, grid)
+    if kwargs.get("step_deg") is None:
+        kwargs.pop("step_deg", None)
     with prefect_env.prefect_api(verbose=kwargs.get("progress", True)):
         res = maps_flow(model=str(model), out=str(out), spec=spec, throttle=throttle, speed=speed,
                         lambda_table=None if lambda_table is None else str(lambda_table), settings=settings,

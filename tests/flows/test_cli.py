@@ -5,6 +5,7 @@ import json
 import pandas as pd
 import pytest
 
+from engine_model.bench import packaged_bench_path
 from flows.cli import main
 
 
@@ -32,21 +33,21 @@ def test_mbc_simulate_bad_input_writes_nothing(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == [src]
 
 
-def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
+def test_mbc_run_quick_pipeline_on_packaged_data(quick_run, run_copy):
     """The whole pipeline (small settings) through real Prefect + a 2-worker Dask cluster.
 
     Checks the stage outputs the issues name, that the index page links only files that exist,
-    and that the run folder is only renamed from ``.partial`` once complete.
+    and that the run folder is only renamed from ``.partial`` once complete.  ``quick_run`` is the
+    session's one quick run (tests/flows/conftest.py); the later-stage part works on a copy of it.
     """
-    out = tmp_path / "run"
-    assert main(["run", "--quick", "--out", str(out)]) == 0
+    out = quick_run.out
     for rel in ("index.html", "manifest.json", "calibration/airflow_match.parquet",
                 "calibration/combustion_params.parquet", "calibration/calibration.html", "model/model.json",
                 "model/learning_curve.png", "virtual_bench/measured.parquet", "maps/ecu_tables.parquet",
-                "maps/spark_advance.csv", "maps/injection_time.csv", "maps/lambda_target.csv"):
+                "maps/spark_advance.csv", "maps/injection_time.csv", "maps/lambda_target.csv", "bench.parquet"):
         assert (out / rel).is_file(), rel
     assert list((out / "gap").glob("*.png")), "gap report figures"
-    assert not (tmp_path / "run.partial").exists()
+    assert not out.with_name(out.name + ".partial").exists()
     man = json.loads((out / "manifest.json").read_text())
     assert man["status"] == "complete" and set(man["timings_s"]) >= {"calibration", "maps", "gap"}
     air = pd.read_parquet(out / "calibration" / "airflow_match.parquet")
@@ -55,18 +56,25 @@ def test_mbc_run_quick_pipeline_on_packaged_data(prefect_api, tmp_path, capsys):
     assert spark.shape == (3, 3)
     page = (out / "index.html").read_text()
     assert "(missing)" not in page and "maps/spark_advance.csv" in page
-    assert "index:" in capsys.readouterr().out
+    assert "index:" in quick_run.stdout
+    # the run keeps the bench data it was given (the file itself is gone since)
+    assert man["bench"] == str(quick_run.bench) and not quick_run.bench.exists()
+    kept = pd.read_parquet(out / "bench.parquet")
+    assert kept["point_id"].tolist() == pd.read_csv(packaged_bench_path(), dtype={"point_id": str})["point_id"].tolist()
     # the calibrated engine is in the run folder, with the matched values
     from engine_model.calibrated import CalibratedEngine
     eng = CalibratedEngine.load(out / "engine.toml")
     assert eng.overrides == pytest.approx(man["calibration"]["airflow"]["parameters"])
     assert eng.spec_hash() == man["calibrated_spec_hash"]
-    # a later stage alone, on the finished run: it uses the run's engine and leaves the other stages' outputs
+    # a later stage alone, on the finished run: it uses the run's engine and bench copy, and leaves the
+    # other stages' outputs
+    out = run_copy
     spark_before = (out / "maps" / "spark_advance.csv").read_bytes()
     assert main(["run", "--quick", "--stages", "gap", "--out", str(out)]) == 0
     man2 = json.loads((out / "manifest.json").read_text())
     assert list(man2["timings_s"]) == ["gap"] and man2["stages"] == ["gap"]
     assert man2["calibrated_spec_hash"] == man["calibrated_spec_hash"]
+    assert man2["bench"] == man["bench"]
     assert "maps" in man2 and (out / "maps" / "spark_advance.csv").read_bytes() == spark_before
     assert "maps/spark_advance.csv" in (out / "index.html").read_text()
 
