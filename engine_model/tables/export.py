@@ -108,12 +108,11 @@ def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Pat
             if not feas[i, j]:
                 ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, hatch="///", edgecolor="white",
                                            linewidth=0))
-            if annotate and np.isfinite(vals[i, j]):
-                txt = cell_label(name, vals[i, j], dec, lim[i, j])
             if name.startswith("spark") and lim[i, j] == "knock":
                 ax.add_patch(plt.Rectangle((j - 0.46, i - 0.46), 0.92, 0.92, fill=False, edgecolor="tab:orange",
                                            linewidth=1.2))
-                ax.text(j, i, txt, ha="center", va="center", fontsize=6.5,
+            if annotate and np.isfinite(vals[i, j]):
+                ax.text(j, i, cell_label(name, vals[i, j], dec, lim[i, j]), ha="center", va="center", fontsize=6.5,
                         color="white" if im.norm(vals[i, j]) < 0.6 else "black")
     ax.set_xticks(range(ns), [f"{n / 1000:g}" for n in result.grid.speed_rpm], fontsize=8)
     ax.set_yticks(range(nt), [f"{t:g}" for t in result.grid.throttle_pct], fontsize=8)
