@@ -110,10 +110,13 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
             for name, module in (("calibration", calibration), ("model", model), ("maps", maps), ("gap", gap)):
                 t = time.perf_counter()
                 if name in rs.stages:
-                    if progress:
-                        print(f"== stage {name}", file=sys.stderr)
-                    man[name] = module.run(ctx)
+                    if progress:   # the overall line: which stage of how many, time so far
+                        print(f"== stage {rs.stages.index(name) + 1}/{len(rs.stages)} {name} "
+                              f"(run time so far {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+                    man[name] = module.run(dataclasses.replace(ctx, stage=name))
                     timings[name] = round(time.perf_counter() - t, 1)
+                    if progress:
+                        print(f"\n   stage {name} done in {timings[name]:.0f} s", file=sys.stderr)
                 elif previous.get(name):
                     man[name] = previous[name]
                 if name == "calibration":
