@@ -34,6 +34,7 @@ from flows.stages.context import ENGINE_FILE, StageContext
 from flows.sweep import DEFAULT_WORKERS
 
 from prefect import flow  # noqa: E402
+from prefect.exceptions import TerminationSignal  # noqa: E402
 
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
@@ -127,7 +128,7 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
                                                   engine_file=str(work / ENGINE_FILE))
                     man["calibrated_spec_hash"] = ctx.engine.spec_hash()
     except BaseException as exc:
-        state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        state = "interrupted" if isinstance(exc, (KeyboardInterrupt, TerminationSignal)) else "failed"
         write_json({**man, "status": state, "error": repr(exc)[:500]}, work / "running.json")
         raise
     man["timings_s"] = timings
