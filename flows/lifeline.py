@@ -45,6 +45,26 @@ def die_with_parent(sig: int = signal.SIGTERM):
     return preexec
 
 
+_SIGNALLED: list[int] = []   # signals seen by stop_signals() in this process
+
+
+def is_stop(exc: BaseException | None) -> bool:
+    """Whether ``exc`` is (a consequence of) a stop: Ctrl-C, SIGTERM, or any error after one was received.
+
+    Prefect raises its own ``TerminationSignal`` on SIGTERM inside a flow; raised while a library
+    serialises (pydantic), it can arrive wrapped in a ``ValueError`` that keeps only its name.
+    """
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, KeyboardInterrupt) or type(exc).__name__ == "TerminationSignal":
+            return True
+        if "TerminationSignal" in str(exc)[:500]:
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return bool(_SIGNALLED)
+
+
 class Stop(KeyboardInterrupt):
     """The driver was asked to stop (Ctrl-C or SIGTERM); a ``KeyboardInterrupt`` so every layer treats it so."""
 
@@ -55,13 +75,11 @@ def stop_signals():
     if os.name != "posix":
         yield
         return
-    seen = []
-
     def handler(signum, frame):
-        if seen:
+        if _SIGNALLED:
             os.write(2, b"\nmbc: stopped at once (second signal)\n")
             os._exit(130)
-        seen.append(signum)
+        _SIGNALLED.append(signum)
         hush_workers()
         raise Stop(signal.Signals(signum).name)
 

@@ -21,7 +21,7 @@ import os
 import subprocess
 import sys
 
-from flows.lifeline import die_with_parent
+from flows.lifeline import die_with_parent, is_stop
 
 # Quiet and offline defaults, before Prefect reads its settings (an explicit
 # environment setting wins).
@@ -112,6 +112,8 @@ class _DropMessages:
         self.prefixes = prefixes
 
     def filter(self, record) -> bool:
+        if record.exc_info and record.exc_info[1] is not None and is_stop(record.exc_info[1]):
+            return False   # the engine's report of an exception that is a stop (the command reports it once)
         return not str(record.getMessage()).startswith(self.prefixes)
 
 

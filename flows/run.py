@@ -28,13 +28,13 @@ from pathlib import Path
 
 from flows import prefect_env
 from flows.evaluate import shared_cluster
+from flows.lifeline import is_stop
 from flows.settings import QUICK, STAGES, RunSettings, settings_from_dict, settings_to_dict  # noqa: F401
 from flows.stages import calibration, gap, maps, model
 from flows.stages.context import ENGINE_FILE, StageContext
 from flows.sweep import DEFAULT_WORKERS
 
 from prefect import flow  # noqa: E402
-from prefect.exceptions import TerminationSignal  # noqa: E402
 
 from engine_model.bench import load_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
@@ -128,7 +128,7 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
                                                   engine_file=str(work / ENGINE_FILE))
                     man["calibrated_spec_hash"] = ctx.engine.spec_hash()
     except BaseException as exc:
-        state = "interrupted" if isinstance(exc, (KeyboardInterrupt, TerminationSignal)) else "failed"
+        state = "interrupted" if is_stop(exc) else "failed"
         write_json({**man, "status": state, "error": repr(exc)[:500]}, work / "running.json")
         raise
     man["timings_s"] = timings

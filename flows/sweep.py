@@ -37,12 +37,11 @@ import pandas as pd
 
 from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
 from flows import store
-from flows.lifeline import hush_workers
+from flows.lifeline import hush_workers, is_stop
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
 from prefect.cache_policies import NO_CACHE  # noqa: E402
-from prefect.exceptions import TerminationSignal  # noqa: E402
 from distributed import as_completed as dask_as_completed  # noqa: E402
 
 from engine_model import SolverSettings, load_spec  # noqa: E402
@@ -305,7 +304,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
     try:
         _collect(pending, submit_next, window, keys, sweep_dir, schema, bar, counts, failed, timing)
     except BaseException as exc:   # Ctrl-C / SIGTERM or a driver error: say so on disk
-        state = "interrupted" if isinstance(exc, (KeyboardInterrupt, TerminationSignal)) else "failed"
+        state = "interrupted" if is_stop(exc) else "failed"
         if state == "interrupted":
             hush_workers()   # they are about to be stopped: their reports of it are expected
         write_json({**base, "status": state, "started": started, "error": repr(exc)[:300],
