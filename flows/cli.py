@@ -390,16 +390,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from flows.lifeline import is_stop, stop_signals
+
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
-    except ValueError as exc:
-        print(f"mbc: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("\nmbc: interrupted; finished chunks are on disk, run the same command again to resume",
-              file=sys.stderr)
-        return 130
+        with stop_signals():   # Ctrl-C and SIGTERM: KeyboardInterrupt once, clean-up, one line (flows/lifeline.py)
+            return args.func(args)
+    except BaseException as exc:
+        if is_stop(exc):
+            why = f" ({exc})" if isinstance(exc, KeyboardInterrupt) and str(exc) else ""
+            print(f"\nmbc: interrupted{why}; finished chunks are on disk, run the same command again to resume",
+                  file=sys.stderr)
+            return 130
+        if isinstance(exc, ValueError):
+            print(f"mbc: error: {exc}", file=sys.stderr)
+            return 2
+        raise
 
 
 if __name__ == "__main__":

@@ -120,6 +120,10 @@ def serve_deployments(watch: str = "bench_inbox", cron: str | None = None, inter
     Path(watch).mkdir(parents=True, exist_ok=True)
     deployments = build_deployments(watch, results, cron, interval_s)
     if not prefect_env.configured_api_url():
-        print("mbc serve: no PREFECT_API_URL set; using Prefect's ephemeral API (runs are not visible "
+        print("mbc serve: no PREFECT_API_URL set; using a local Prefect server of its own (runs are not visible "
               "to other processes). Start `prefect server start` and export PREFECT_API_URL for a real server.")
-    serve(*deployments)
+    # Our own local server when none is configured (like `mbc run`): on 127.0.0.1, in its own session, and
+    # stopped after the runner, so SIGTERM or Ctrl-C (KeyboardInterrupt, flows/lifeline.py) ends `serve`
+    # and then the server, instead of leaving the runner polling a server that is gone.
+    with prefect_env.prefect_api(verbose=False):
+        serve(*deployments)

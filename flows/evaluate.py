@@ -16,8 +16,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from flows.lifeline import hush_workers
 from flows.store import read_results
-from flows.sweep import DEFAULT_WORKERS, dask_runner, sweep_flow
+from flows.sweep import DEFAULT_WORKERS, dask_runner, local_cluster_kwargs, sweep_flow
 
 from engine_model.io import write_parquet  # noqa: E402
 
@@ -30,8 +31,12 @@ def shared_cluster(workers: int = DEFAULT_WORKERS, address: str | None = None):
         return
     from distributed import LocalCluster
 
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster:
-        yield cluster.scheduler_address
+    with LocalCluster(**local_cluster_kwargs(workers)) as cluster:
+        try:
+            yield cluster.scheduler_address
+        finally:   # the workers' own reports of the close that follows are expected: hush them first
+            hush_workers([getattr(n.process, "pid", None) for n in cluster.workers.values()
+                          if getattr(n, "process", None) is not None])
 
 
 class SweepEvaluator:
@@ -51,10 +56,12 @@ class SweepEvaluator:
         Folder prefix of the batches.
     progress : bool
         Progress bar per batch.
+    title : str, optional
+        What the progress line calls these batches (e.g. ``calibration airflow``); ``label`` by default.
     """
 
     def __init__(self, root, address: str, spec: str | None = None, step_deg: float = 0.5,
-                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True):
+                 tolerance: float = 1e-3, label: str = "batch", progress: bool = True, title: str | None = None):
         self.root = Path(root)
         self.address = address
         self.spec = spec
@@ -62,6 +69,7 @@ class SweepEvaluator:
         self.tolerance = tolerance
         self.label = label
         self.progress = progress
+        self.title = title or label
         self.calls = 0
         self.points = 0
 
@@ -76,7 +84,7 @@ class SweepEvaluator:
         flow = sweep_flow.with_options(task_runner=dask_runner(address=self.address),
                                        flow_run_name=f"{self.label}-{self.calls - 1:03d}")
         flow(plan=str(src), out=str(out), spec=self.spec, step_deg=self.step_deg, tolerance=self.tolerance,
-             progress=self.progress)
+             progress=self.progress, label=f"{self.title} #{self.calls}")
         res = read_results(out)
         if list(res["point_id"]) != list(plan["point_id"].astype(str)):
             raise RuntimeError(f"{out}: the sweep did not return every planned point exactly once")

@@ -29,6 +29,7 @@ from pathlib import Path
 
 from flows import prefect_env
 from flows.evaluate import shared_cluster
+from flows.lifeline import is_stop
 from flows.settings import QUICK, STAGES, RunSettings, settings_from_dict, settings_to_dict  # noqa: F401
 from flows.stages import calibration, gap, maps, model
 from flows.stages.context import BENCH_FILE, ENGINE_FILE, StageContext
@@ -163,10 +164,13 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
             for name, module in (("calibration", calibration), ("model", model), ("maps", maps), ("gap", gap)):
                 t = time.perf_counter()
                 if name in rs.stages:
-                    if progress:
-                        print(f"== stage {name}", file=sys.stderr)
-                    man[name] = module.run(ctx)
+                    if progress:   # the overall line: which stage of how many, time so far
+                        print(f"== stage {rs.stages.index(name) + 1}/{len(rs.stages)} {name} "
+                              f"(run time so far {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+                    man[name] = module.run(dataclasses.replace(ctx, stage=name))
                     timings[name] = round(time.perf_counter() - t, 1)
+                    if progress:
+                        print(f"\n   stage {name} done in {timings[name]:.0f} s", file=sys.stderr)
                 elif previous.get(name):
                     man[name] = previous[name]
                 if name == "calibration":
@@ -177,7 +181,7 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
                                                   engine_file=str(work / ENGINE_FILE))
                     man["calibrated_spec_hash"] = ctx.engine.spec_hash()
     except BaseException as exc:
-        state = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
+        state = "interrupted" if is_stop(exc) else "failed"
         write_json({**man, "status": state, "error": repr(exc)[:500]}, work / "running.json")
         raise
     man["timings_s"] = timings

@@ -37,6 +37,7 @@ import pandas as pd
 
 from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
 from flows import store
+from flows.lifeline import hush_workers, is_stop
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
@@ -131,12 +132,18 @@ def simulate_chunk(spec, points: pd.DataFrame, solver: SolverSettings, chunk: in
 
 # ----------------------------------------------------------------------------- driver side
 class Progress:
-    """A one-line progress bar on stderr: chunks, points, throughput, ETA."""
+    """A one-line progress bar on stderr: ``label``, chunks, points, throughput, ETA.
 
-    def __init__(self, total_chunks: int, total_points: int, label: str = "sweep", enabled: bool = True):
-        self.tc, self.tp, self.label, self.enabled = total_chunks, total_points, label, enabled
+    ``keep``: end with a newline when done (a top-level sweep); otherwise the line is overwritten by the
+    next one (the many small sweeps of a run's stage, labelled with the stage and their purpose).
+    """
+
+    def __init__(self, total_chunks: int, total_points: int, label: str = "sweep", enabled: bool = True,
+                 keep: bool = True):
+        self.tc, self.tp, self.label, self.enabled, self.keep = total_chunks, total_points, label, enabled, keep
         self.c = self.p = 0
         self.t0 = time.perf_counter()
+        self.width = 0
 
     def update(self, points: int) -> None:
         self.c += 1
@@ -145,13 +152,15 @@ class Progress:
             return
         el = time.perf_counter() - self.t0
         rate = self.p / el if el > 0 else 0.0
-        eta = (self.tp - self.p) / rate if rate > 0 else float("nan")
-        w = 30
+        eta = f"eta {(self.tp - self.p) / rate:4.0f} s" if rate > 0 else "eta ?"
+        w = 20
         f = int(w * self.p / max(self.tp, 1))
-        sys.stderr.write(f"\r{self.label} [{'#' * f}{'.' * (w - f)}] {self.c}/{self.tc} chunks, "
-                         f"{self.p}/{self.tp} points, {rate:5.1f} pt/s, eta {eta:4.0f} s ")
+        line = (f"{self.label} [{'#' * f}{'.' * (w - f)}] {self.p}/{self.tp} points, {self.c}/{self.tc} chunks, "
+                f"{rate:5.1f} pt/s, {eta}")
+        self.width = max(self.width, len(line))
+        sys.stderr.write("\r" + line.ljust(self.width))
         if self.c == self.tc:
-            sys.stderr.write("\n")
+            sys.stderr.write("\n" if self.keep else "\r")
         sys.stderr.flush()
 
 
@@ -188,14 +197,24 @@ def dask_runner(workers: int = DEFAULT_WORKERS, address: str | None = None):
     dask.config.set({"distributed.admin.low-level-log-length": LOW_LEVEL_LOG_LENGTH})
     if address:
         return DaskTaskRunner(address=address)
-    if workers < 1:
-        raise ValueError(f"workers = {workers} must be >= 1")
     # The workers' statistical profiler (a thread sampling every 10 ms, for the dashboard) competes with the
     # kernels, which hold the GIL for a whole point; the local cluster's nannies pass this config to their
     # workers.  An external cluster keeps its own settings.
     dask.config.set({"distributed.worker.profile.enabled": False})
-    return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1, "processes": True,
-                                          "dashboard_address": ":0"})
+    return DaskTaskRunner(cluster_kwargs=local_cluster_kwargs(workers))
+
+
+def local_cluster_kwargs(workers: int) -> dict:
+    """``LocalCluster`` options of a run's own cluster: ``workers`` x 1 thread, everything on 127.0.0.1.
+
+    The scheduler, the workers, their nannies and the dashboard listen on the loopback interface only
+    (Dask's ``dashboard_address=":0"`` would listen on every interface); the workers ignore Ctrl-C, which
+    the driver handles by closing the cluster (``flows.lifeline``).
+    """
+    if workers < 1:
+        raise ValueError(f"workers = {workers} must be >= 1")
+    return {"n_workers": workers, "threads_per_worker": 1, "processes": True, "host": "127.0.0.1",
+            "dashboard_address": "127.0.0.1:0", "preload": ["flows.lifeline"]}
 
 
 def env_runner():
@@ -205,7 +224,7 @@ def env_runner():
 
 @flow(name="sweep", log_prints=False, validate_parameters=False, task_runner=env_runner())
 def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0.5, tolerance: float = 1e-3,
-               chunk_size: int | None = None, progress: bool = True) -> dict:
+               chunk_size: int | None = None, progress: bool = True, label: str | None = None) -> dict:
     """Simulate every point of the plan file ``plan`` into ``out``/sweep/ (resumable).
 
     Parameters
@@ -223,6 +242,9 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         taken from the manifest when resuming.
     progress : bool
         Show a progress bar on stderr.
+    label : str, optional
+        What this sweep is for, on its progress line (e.g. ``model campaign-003``); a labelled sweep's
+        line is overwritten by the next one.  None: ``sweep``, and the line stays.
 
     Returns
     -------
@@ -255,13 +277,13 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
 
     schema = store.result_schema(pts)
     todo, skipped, counts = _resume_state(sweep_dir, pts, bounds, eng.spec_hash(), store.solver_hash(solver))
-    bar = Progress(len(todo), sum(b - a for _, a, b, _ in todo), enabled=progress)
-    if progress and skipped:
+    bar = Progress(len(todo), sum(b - a for _, a, b, _ in todo), label=label or "sweep", enabled=progress,
+                   keep=label is None)
+    if progress and skipped and label is None:
         print(f"resuming: {skipped} of {len(bounds)} chunks already done", file=sys.stderr)
 
     keys = {c: key for c, _, _, key in todo}
-    failed, compute_s = {}, 0.0
-    t_first = None
+    failed, timing = {}, {"compute_s": 0.0, "first_result_s": None, "t_start": t_start}
     # Completion order via the Dask futures; each is released as soon as its part is on disk, so that a
     # worker lost later does not make Dask recompute a finished chunk (Dask recomputes lost results that a
     # client still holds), and the driver holds nothing for finished chunks.
@@ -280,6 +302,38 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
         pending[fut.wrapped_future] = (c, fut)
         return True
 
+    try:
+        _collect(pending, submit_next, window, keys, sweep_dir, schema, bar, counts, failed, timing)
+    except BaseException as exc:   # Ctrl-C / SIGTERM or a driver error: say so on disk
+        state = "interrupted" if is_stop(exc) else "failed"
+        if state == "interrupted":
+            hush_workers()   # they are about to be stopped: their reports of it are expected
+        write_json({**base, "status": state, "started": started, "error": repr(exc)[:300],
+                    "counts": counts, "missing_points": len(pts) - counts["points"]}, man_path)
+        raise
+    compute_s, t_first = timing["compute_s"], timing["first_result_s"]
+
+    wall = time.perf_counter() - t_start
+    complete = not failed and counts["points"] == len(pts)
+    man = {**base, "status": "complete" if complete else "incomplete", "started": started,
+           "finished": _dt.datetime.now().isoformat(timespec="seconds"),
+           "chunks_computed": len(todo) - len(failed), "chunks_skipped": skipped,
+           "chunks_failed": {str(k): v for k, v in sorted(failed.items())},
+           "counts": counts, "missing_points": len(pts) - counts["points"],
+           "timings": {"wall_s": round(wall, 2), "compute_s": round(compute_s, 2),
+                       "first_result_s": None if t_first is None else round(t_first, 2),
+                       "points_per_s": round(sum(b - a for _, a, b, _ in todo) / wall, 2) if todo else 0.0},
+           "dask": _dask_description()}
+    write_json(man, man_path)
+    if failed:
+        raise RuntimeError(f"{len(failed)} chunk(s) failed after retries ({sorted(failed)}); their points are "
+                           f"listed as missing in {man_path}; run the same command again to compute them")
+    return man
+
+
+def _collect(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Path, schema, bar: "Progress",
+             counts: dict, failed: dict, timing: dict) -> None:
+    """Keep ``window`` chunks in flight; write each finished chunk's part as it arrives (driver side)."""
     while len(pending) < window and submit_next():
         pass
     done_iter = dask_as_completed(list(pending), loop=_runner_client().loop)
@@ -299,29 +353,12 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
             del fut
         store.write_part(res, store.part_path(sweep_dir, c), schema,
                          {"key": keys[c], "chunk": c, "rows": len(res), "seconds": round(secs, 3)})
-        compute_s += secs
-        if t_first is None:
-            t_first = time.perf_counter() - t_start
+        timing["compute_s"] += secs
+        if timing["first_result_s"] is None:
+            timing["first_result_s"] = time.perf_counter() - timing["t_start"]
         bar.update(len(res))
         _add_counts(counts, store.summarize(res))
         del res
-
-    wall = time.perf_counter() - t_start
-    complete = not failed and counts["points"] == len(pts)
-    man = {**base, "status": "complete" if complete else "incomplete", "started": started,
-           "finished": _dt.datetime.now().isoformat(timespec="seconds"),
-           "chunks_computed": len(todo) - len(failed), "chunks_skipped": skipped,
-           "chunks_failed": {str(k): v for k, v in sorted(failed.items())},
-           "counts": counts, "missing_points": len(pts) - counts["points"],
-           "timings": {"wall_s": round(wall, 2), "compute_s": round(compute_s, 2),
-                       "first_result_s": None if t_first is None else round(t_first, 2),
-                       "points_per_s": round(sum(b - a for _, a, b, _ in todo) / wall, 2) if todo else 0.0},
-           "dask": _dask_description()}
-    write_json(man, man_path)
-    if failed:
-        raise RuntimeError(f"{len(failed)} chunk(s) failed after retries ({sorted(failed)}); their points are "
-                           f"listed as missing in {man_path}; run the same command again to compute them")
-    return man
 
 
 def _resume_state(sweep_dir: Path, pts: pd.DataFrame, bounds: list, spec_hash: str, solver_h: str):

@@ -39,6 +39,8 @@ class StageContext:
         Where the bench data came from (for reports).
     progress : bool
         Progress output on stderr.
+    stage : str
+        Name of the stage being run (progress lines say which stage a sweep belongs to).
     """
 
     work: Path
@@ -49,12 +51,14 @@ class StageContext:
     bench: pd.DataFrame | None = None
     bench_source: str = ""
     progress: bool = True
+    stage: str = ""
 
     def evaluator(self, label: str, step_deg: float | None = None, tolerance: float = 1e-3) -> SweepEvaluator:
         """``evaluate(plan) -> results`` running each batch as a resumable sweep under ``work/sweeps/``."""
         return SweepEvaluator(self.work / "sweeps", self.address, spec=self.engine_file,
                               step_deg=self.settings.step_deg if step_deg is None else step_deg,
-                              tolerance=tolerance, label=label, progress=self.progress)
+                              tolerance=tolerance, label=label, progress=self.progress,
+                              title=f"{self.stage} {label}".strip())
 
     def with_engine(self, engine: CalibratedEngine) -> "StageContext":
         """The context with ``engine`` written into the run folder and used by every later sweep."""
