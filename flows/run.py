@@ -27,7 +27,7 @@ import time
 from importlib import resources
 from pathlib import Path
 
-from flows import prefect_env
+from flows import eta, prefect_env
 from flows.evaluate import shared_cluster
 from flows.lifeline import is_stop
 from flows.settings import QUICK, STAGES, RunSettings, settings_from_dict, settings_to_dict  # noqa: F401
@@ -113,6 +113,13 @@ def _keep_bench_copy(bench: str | None, work: Path, throttle_unit: str = "pct") 
     write_parquet(throttle_to_pct(raw, f"bench file {bench}", throttle_unit), work / BENCH_FILE)
 
 
+def _expected_times(rs: RunSettings, bench_points: int, workers: int | None) -> dict:
+    """Rough expected wall time [s] of each requested stage (:mod:`flows.eta`)."""
+    cells = maps.ecu_grid(rs.map_throttle, rs.map_speed).shape
+    return {s: eta.expected_stage_s(s, rs.quick, rs.step_deg, bench_points, rs.doe_points, cells[0] * cells[1],
+                                    workers) for s in rs.stages}
+
+
 def _previous(work: Path, manifest: dict, stage: str) -> dict:
     """A stage's summary from an earlier run in the same folder (it was not asked to run again)."""
     import json
@@ -161,12 +168,15 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
         with shared_cluster(workers, dask_address) as addr:
             ctx = StageContext(work=work, engine=engine, engine_file=spec, address=addr, settings=rs, bench=meas,
                                bench_source=source, progress=progress)
+            expect = _expected_times(rs, len(meas), None if dask_address else workers)
             for name, module in (("calibration", calibration), ("model", model), ("maps", maps), ("gap", gap)):
                 t = time.perf_counter()
                 if name in rs.stages:
-                    if progress:   # the overall line: which stage of how many, time so far
-                        print(f"== stage {rs.stages.index(name) + 1}/{len(rs.stages)} {name} "
-                              f"(run time so far {time.perf_counter() - t0:.0f} s)", file=sys.stderr)
+                    if progress:   # the overall line: which stage of how many, time so far, rough time left
+                        left = sum(v for k, v in expect.items() if rs.stages.index(k) >= rs.stages.index(name))
+                        print(f"== stage {rs.stages.index(name) + 1}/{len(rs.stages)} {name}: run time so far "
+                              f"{eta.minutes(time.perf_counter() - t0)}; expected ~{eta.minutes(expect[name])} for "
+                              f"this stage, ~{eta.minutes(left)} to the end of the run", file=sys.stderr)
                     man[name] = module.run(dataclasses.replace(ctx, stage=name))
                     timings[name] = round(time.perf_counter() - t, 1)
                     if progress:
