@@ -18,7 +18,8 @@ import pandas as pd
 __all__ = [
     "PLAN_COLUMNS", "OPERATING_POINT_COLUMNS", "RESULT_COLUMNS", "BENCH_REQUIRED", "BENCH_OPTIONAL",
     "MEASURED_COLUMNS", "BENCH_STATUSES", "COMBUSTION_INPUTS", "COMBUSTION_OUTPUTS", "IDENTIFICATION_COLUMNS",
-    "SWEEP_COLUMNS", "TABLE_COLUMNS", "UNITS", "THROTTLE_UNITS", "check_combustion_inputs", "throttle_to_pct",
+    "SWEEP_COLUMNS", "TABLE_COLUMNS", "UNITS", "THROTTLE_UNITS", "check_breakpoints", "check_combustion_inputs",
+    "throttle_to_pct",
 ]
 
 #: Columns every DOE plan carries.
@@ -160,3 +161,36 @@ def throttle_to_pct(table: pd.DataFrame, source: str, unit: str = "pct") -> pd.D
                          "throttle opening in percent (0-100, WOT = 100).  Multiply the column by 100, or pass "
                          "--throttle-unit fraction to convert it on load")
     return table
+
+
+def check_breakpoints(where: str, values, unit: str = "", lo: float = -np.inf, hi: float = np.inf,
+                      min_count: int = 2) -> np.ndarray:
+    """Table breakpoints as a float array; ValueError naming ``where`` and the offending breakpoint.
+
+    The one rule every table axis of the project follows (ECU grids, ECU files, load tables): at least
+    ``min_count`` finite numbers, strictly ascending (a duplicate and a step back are told apart), all
+    within ``[lo, hi]`` (in ``unit``).
+    """
+    u = f" {unit}" if unit else ""
+    try:
+        arr = np.array([float(v) for v in np.ravel(np.asarray(values, dtype=object))], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}: {values!r} must be a sequence of numbers [{unit or '-'}]") from None
+    if arr.size < min_count:
+        raise ValueError(f"{where}: needs at least {min_count} breakpoints, got {arr.size}")
+    bad = np.flatnonzero(~np.isfinite(arr))
+    if bad.size:
+        raise ValueError(f"{where}: breakpoint {bad[0]} = {arr[bad[0]]} is not a finite number")
+    d = np.diff(arr)
+    if np.any(d == 0):
+        k = int(np.flatnonzero(d == 0)[0])
+        raise ValueError(f"{where}: duplicate breakpoint {arr[k]:g}{u} at positions {k} and {k + 1} (breakpoints "
+                         "must be strictly increasing)")
+    if np.any(d < 0):
+        k = int(np.flatnonzero(d < 0)[0])
+        raise ValueError(f"{where}: breakpoints must be sorted ascending; {arr[k]:g}{u} (position {k}) is followed "
+                         f"by {arr[k + 1]:g}{u} (they must be strictly increasing)")
+    if arr[0] < lo or arr[-1] > hi:
+        raise ValueError(f"{where}: breakpoints {arr[0]:g}..{arr[-1]:g}{u} leave the allowed range "
+                         f"[{lo:g}, {hi:g}]{u}")
+    return arr

@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from engine_model import priors
+from engine_model.contracts import check_breakpoints
 
 __all__ = ["LoadTable", "build_load_table", "QUANTITIES", "DEFAULT_THROTTLE_PCT", "DEFAULT_SPEED_RPM"]
 
@@ -70,22 +71,8 @@ LOAD_SOLVER = _load_solver()
 
 
 def _axis(values, name: str, lo: float, hi: float) -> tuple[float, ...]:
-    try:
-        v = np.asarray(values, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ValueError(f"LoadTable.{name}: breakpoints {values!r} are not numbers") from None
-    if v.size < 4:
-        raise ValueError(f"LoadTable.{name}: needs at least 4 breakpoints (PCHIP), got {v.size}")
-    bad = np.flatnonzero(~np.isfinite(v) | (v < lo) | (v > hi))
-    if bad.size:
-        raise ValueError(f"LoadTable.{name}: breakpoint {int(bad[0])} = {float(v[bad[0]])!r} is not a finite number in "
-                         f"[{lo:g}, {hi:g}]")
-    d = np.diff(v)
-    if np.any(d <= 0):
-        i = int(np.flatnonzero(d <= 0)[0])
-        raise ValueError(f"LoadTable.{name}: breakpoints must be strictly ascending; {v[i + 1]:g} at position "
-                         f"{i + 1} follows {v[i]:g}")
-    return tuple(float(x) for x in v)
+    unit = "%" if name == "throttle_pct" else "rpm"
+    return tuple(check_breakpoints(f"LoadTable.{name}", values, unit, lo, hi, min_count=4).tolist())   # 4: PCHIP
 
 
 @dataclass(frozen=True)

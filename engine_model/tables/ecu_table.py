@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 
 from .. import thermo
+from ..contracts import check_breakpoints
 from ..spec import EngineSpec
 from .injection import injection_time_ms
 
@@ -64,20 +65,7 @@ R_AIR_J_KG_K = thermo.R_UNIVERSAL / 0.0289647
 # --------------------------------------------------------------------------- the table
 
 def _axis(owner: str, field: str, values, unit: str) -> np.ndarray:
-    try:
-        arr = np.array(values, dtype=float).ravel()
-    except (TypeError, ValueError):
-        raise ValueError(f"{owner}.{field}: {values!r} is not a sequence of numbers [{unit}]") from None
-    if arr.size < 2:
-        raise ValueError(f"{owner}.{field}: needs at least 2 breakpoints, got {arr.size}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise ValueError(f"{owner}.{field}: breakpoint {bad[0]} = {arr[bad[0]]} {unit} is not a finite number")
-    d = np.diff(arr)
-    if np.any(d <= 0):
-        k = int(np.flatnonzero(d <= 0)[0])
-        raise ValueError(f"{owner}.{field}: breakpoint {k + 1} = {arr[k + 1]:g} {unit} does not exceed breakpoint "
-                         f"{k} = {arr[k]:g} {unit}; breakpoints must be strictly increasing")
+    arr = check_breakpoints(f"{owner}.{field}", values, unit)
     arr.setflags(write=False)
     return arr
 

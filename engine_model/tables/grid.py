@@ -10,6 +10,7 @@ import numpy as np
 import pandas as pd
 
 from engine_model import priors
+from engine_model.contracts import check_breakpoints
 from engine_model.spec import EngineSpec
 
 __all__ = ["DEFAULT_THROTTLE_PCT", "DEFAULT_SPEED_RPM", "LAMBDA_RANGE", "EcuGrid", "LambdaTable",
@@ -46,27 +47,7 @@ def parse_breakpoints(text: str, name: str) -> tuple[float, ...]:
 
 
 def _check_axis(name: str, values, lo: float, hi: float, unit: str) -> tuple[float, ...]:
-    try:
-        arr = np.asarray([float(v) for v in values], dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"EcuGrid.{name}: {values!r} must be a sequence of numbers [{unit}]") from None
-    if arr.size < 2:
-        raise ValueError(f"EcuGrid.{name}: needs at least 2 breakpoints, got {arr.size}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise ValueError(f"EcuGrid.{name}: breakpoint {bad[0]} = {arr[bad[0]]} is not a finite number")
-    d = np.diff(arr)
-    if np.any(d == 0):
-        k = int(np.flatnonzero(d == 0)[0])
-        raise ValueError(f"EcuGrid.{name}: duplicate breakpoint {arr[k]:g} {unit} at positions {k} and {k + 1}")
-    if np.any(d < 0):
-        k = int(np.flatnonzero(d < 0)[0])
-        raise ValueError(f"EcuGrid.{name}: breakpoints must be sorted ascending; {arr[k]:g} {unit} "
-                         f"(position {k}) is followed by {arr[k + 1]:g} {unit}")
-    if arr[0] < lo or arr[-1] > hi:
-        raise ValueError(f"EcuGrid.{name}: breakpoints {arr[0]:g}..{arr[-1]:g} {unit} leave the allowed "
-                         f"range [{lo:g}, {hi:g}] {unit}")
-    return tuple(arr.tolist())
+    return tuple(check_breakpoints(f"EcuGrid.{name}", values, unit, lo, hi).tolist())
 
 
 def _read_wide_csv(p: Path) -> list[list[str]]:

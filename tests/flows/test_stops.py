@@ -104,18 +104,23 @@ def _assert_helpers_gone(helpers: dict, timeout: float = 15.0) -> None:
     assert not left, f"still running {timeout} s after the driver ended: {left}"
 
 
+def _wait_for_exit(proc, failure: str, timeout: float = 30.0) -> str:
+    """The stderr of ``proc`` once it has exited; after ``timeout`` s its group is killed and the test fails."""
+    try:
+        return proc.communicate(timeout=timeout)[1]
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        err = proc.communicate()[1]
+        raise AssertionError(f"{failure} within {timeout:.0f} s: {err[-3000:]}") from None
+
+
 def _stop_and_check(tmp_path: Path, send) -> None:
     """Stop a running sweep with ``send(proc)``; one line, `interrupted`, no helper left, exact resume."""
     plan, out, cmd, proc, helpers = _running_sweep(tmp_path)
     done_before = {int(p.name[5:10]) for p in _parts(out)}
     t0 = time.monotonic()
     send(proc)
-    try:
-        _, err = proc.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        _, err = proc.communicate()
-        raise AssertionError(f"the sweep did not stop within 30 s: {err[-3000:]}") from None
+    err = _wait_for_exit(proc, "the sweep did not stop")
     took = time.monotonic() - t0
     assert took < 15, f"stopping took {took:.1f} s"
     assert proc.returncode == 130, (proc.returncode, err[-3000:])
@@ -202,12 +207,7 @@ def test_serve_exits_on_sigterm_with_its_server(tmp_path):
         raise
     t0 = time.monotonic()
     os.kill(proc.pid, signal.SIGTERM)
-    try:
-        _, err = proc.communicate(timeout=30)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        _, err = proc.communicate()
-        raise AssertionError(f"mbc serve ignored SIGTERM for 30 s: {err[-3000:]}") from None
+    err = _wait_for_exit(proc, "mbc serve ignored SIGTERM")
     assert time.monotonic() - t0 < 15
     assert proc.returncode == 130, (proc.returncode, err[-3000:])
     assert "Traceback" not in err, err[-3000:]

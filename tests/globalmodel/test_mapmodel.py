@@ -220,7 +220,7 @@ def test_load_table_interpolates_refuses_bad_grids_and_round_trips():
     assert np.max(np.abs(fine - exact)) < 0.01          # interpolation error of an 8-node PCHIP, well below the spread
     assert list(lt.covers([50, 50, 3], [8000, 15000, 8000])) == [True, False, False]
     assert LoadTable.from_dict(lt.to_dict()) == lt
-    with pytest.raises(ValueError, match=r"speed_rpm: breakpoints must be strictly ascending; 5000 at position 2"):
+    with pytest.raises(ValueError, match=r"LoadTable.speed_rpm: duplicate breakpoint 5000 rpm at positions 1 and 2"):
         LoadTable((0, 10, 20, 30), (1000, 5000, 5000, 9000), np.ones((4, 4)))
     with pytest.raises(ValueError, match=r"throttle 10 %, speed 5000 rpm: nan is not a finite number > 0"):
         v = np.ones((4, 4)); v[1, 1] = np.nan
