@@ -270,8 +270,11 @@ def _write_index(work: Path, man: dict) -> Path:
                           "virtual_bench/measured.parquet", "virtual_bench/identified.parquet"]))
     if "maps" in man:
         mfiles = sorted(p.relative_to(work) for p in (work / "maps").glob("*") if p.is_file())
+        ecu = sorted(p.relative_to(work) for p in (work / "maps" / "ecu").glob("*") if p.is_file())
         sections.append(("ECU tables", "Spark advance (MBT, knock-limited), injection time, target lambda and the "
-                         "retarded starting map.", mfiles))
+                         "retarded starting map; maps/ecu/ holds them as ECU files (TunerStudio .table, Speeduino "
+                         "and rusEFI .msq, DCM 2.0, CSV with units; what was resampled: maps/ecu/README.txt). "
+                         "Other breakpoints or a kPa load axis: mbc export --run <this folder>.", mfiles + ecu))
     if "gap" in man:
         gfiles = sorted(p.relative_to(work) for p in (work / "gap").glob("*") if p.is_file())
         sections.append(("Sim-to-real gap", man["gap"]["statement"], gfiles))

@@ -38,7 +38,7 @@ def test_mbc_run_quick_pipeline_on_packaged_data(quick_run, run_copy):
 
     Checks the stage outputs the issues name, that the index page links only files that exist,
     and that the run folder is only renamed from ``.partial`` once complete.  ``quick_run`` is the
-    session's one quick run (tests/flows/conftest.py); the later-stage part works on a copy of it.
+    session's one quick run (tests/conftest.py); the later-stage part works on a copy of it.
     """
     out = quick_run.out
     for rel in ("index.html", "manifest.json", "calibration/airflow_match.parquet",
@@ -56,6 +56,8 @@ def test_mbc_run_quick_pipeline_on_packaged_data(quick_run, run_copy):
     assert spark.shape == (3, 3)
     page = (out / "index.html").read_text()
     assert "(missing)" not in page and "maps/spark_advance.csv" in page
+    for ecu_file in ("speeduino.msq", "rusefi.msq", "ecu_tables.dcm", "spark_advance.table"):   # linked ECU files
+        assert (out / "maps" / "ecu" / ecu_file).is_file() and f"maps/ecu/{ecu_file}" in page, ecu_file
     assert "index:" in quick_run.stdout
     # the run keeps the bench data it was given (the file itself is gone since)
     assert man["bench"] == str(quick_run.bench) and not quick_run.bench.exists()
