@@ -275,6 +275,15 @@ def _write_index(work: Path, man: dict) -> Path:
                          "retarded starting map; maps/ecu/ holds them as ECU files (TunerStudio .table, Speeduino "
                          "and rusEFI .msq, DCM 2.0, CSV with units; what was resampled: maps/ecu/README.txt). "
                          "Other breakpoints or a kPa load axis: mbc export --run <this folder>.", mfiles + ecu))
+    bc = man.get("maps", {}).get("bench_consistency")
+    if bc:
+        sections.append(("Against the real bench", (
+            "At each bench point: the spark the bench ran, the model's MBT at the identified burn, the knock index "
+            "of the fastest cycles at the bench's spark (calibrated model), and the spark table there. "
+            f"Model MBT within 2 deg of the bench: {bc['mbt_within_2deg']}; knock index < 1 at the points that "
+            f"ran clean: {bc['knock_free_points_below_1']}; table within 3 deg of the bench: "
+            f"{bc['table_within_3deg']}."), ["maps/bench_consistency.png", "maps/bench_consistency.csv",
+                                             "calibration/knock_evidence.parquet"]))
     if "gap" in man:
         gfiles = sorted(p.relative_to(work) for p in (work / "gap").glob("*") if p.is_file())
         sections.append(("Sim-to-real gap", man["gap"]["statement"], gfiles))

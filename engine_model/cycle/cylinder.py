@@ -1,4 +1,4 @@
-"""In-cylinder sub-models: Woschni heat transfer and the knock (Livengood-Wu) rate."""
+"""In-cylinder sub-models: Woschni heat transfer, the end-gas temperature and the knock (Livengood-Wu) rate."""
 
 import math
 
@@ -42,15 +42,52 @@ def wall_heat_rate(h, t_gas, a_head, t_head, a_piston, t_piston, a_liner, t_line
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def end_gas_temperature(p, p_ref, t_ref, exponent):
-    """Unburned end-gas temperature [K], isentropic from the reference state: T_r*(p/p_r)^((g-1)/g)."""
-    return t_ref * math.exp(exponent * math.log(p / p_ref))
+def end_gas_temperature(c, s_target, t_guess):
+    """Unburned end-gas temperature [K] on a variable-cp isentrope.
+
+    Solves s0(T) = ``s_target`` for T by Newton's method from ``t_guess``, where s0 is the
+    standard-state entropy of the end-gas mixture (a (2, 7) block of mass NASA coefficients
+    ``c``, see :func:`engine_model.thermo.s0_mass`) and ``s_target`` = s0(T_ref) + R ln(p/p_ref)
+    carries the pressure: ds = cp dT/T - R dp/p = 0 integrated exactly, so the result does not
+    depend on the crank step.
+    """
+    t = t_guess if t_guess > 200.0 else 700.0
+    for _ in range(30):
+        k = 0 if t < 1000.0 else 1
+        s0 = c[k, 0] * math.log(t) + t * (c[k, 1] + t * (c[k, 2] / 2.0 + t * (c[k, 3] / 3.0 + t * c[k, 4] / 4.0))) \
+            + c[k, 6]
+        cp = c[k, 0] + t * (c[k, 1] + t * (c[k, 2] + t * (c[k, 3] + t * c[k, 4])))
+        t_new = t - (s0 - s_target) * t / cp
+        if t_new < 150.0:
+            t_new = 150.0
+        elif t_new > 3000.0:
+            t_new = 3000.0
+        if abs(t_new - t) <= 1e-9 * t_new:
+            return t_new
+        t = t_new
+    return t
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
 def ignition_delay(p, t_unburned, delay_coeff_s, pressure_exponent, activation_temp_k):
     """Douaud-Eyzat ignition delay [s] = A' * (p/1 atm)^-n * exp(B/T_u).
 
-    ``delay_coeff_s`` is A' = A*(ON/100)^3.402 (Douaud and Eyzat 1978, SAE 780080).
+    ``delay_coeff_s`` is A' = A*(ON/100)^3.402 (Douaud and Eyzat 1978, SAE 780080), times
+    the delay multiplier calibrated on bench data.  The dilution factor of the end gas is
+    applied by the caller (:func:`dilution_factor`).
     """
     return delay_coeff_s * math.exp(-pressure_exponent * math.log(p / P_STD_PA) + activation_temp_k / t_unburned)
+
+
+@njit(cache=True, fastmath=FASTMATH, _nrt=False)
+def dilution_factor(burned_fraction, exponent):
+    """(1 - x_b)^d: the factor on the autoignition rate 1/tau for burned gas (residual, EGR) in the end gas.
+
+    Burned gas takes the place of fuel and oxygen at the same pressure and temperature; with the
+    chain-branching rate first order in their concentration the delay grows as 1/(1 - x_b)
+    (d = 1).  Sources of the form and the exponent: ``KnockSpec.dilution_exponent``.
+    """
+    x = burned_fraction if burned_fraction < 0.95 else 0.95
+    if x <= 0.0:
+        return 1.0
+    return math.exp(exponent * math.log(1.0 - x))

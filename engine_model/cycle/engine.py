@@ -32,10 +32,10 @@ import math
 import numpy as np
 from numba import njit
 
-from engine_model.thermo import enthalpy_coeffs_into
+from engine_model.thermo import enthalpy_coeffs_into, mix_coeffs, s0_mass
 from engine_model.cycle.accel import mpe, pack_state, state_weights, unpack_state
-from engine_model.cycle.cylinder import (end_gas_temperature, ignition_delay, wall_heat_rate, woschni_coefficient,
-                                         woschni_velocity)
+from engine_model.cycle.cylinder import (dilution_factor, end_gas_temperature, ignition_delay, wall_heat_rate,
+                                         woschni_coefficient, woschni_velocity)
 from engine_model.cycle.flow import gas_viscosity
 from engine_model.cycle.layout import *  # noqa: F401,F403  (index constants)
 from engine_model.cycle.network import add_rate, lin_between, orifice_between, solve_one, solve_two
@@ -141,12 +141,13 @@ def _lumped_runners(vol, mr, par, props, vcur, nvol, ncyl, dt, dvol, dmr, rate):
 
 
 @njit(cache=True, fastmath=FASTMATH, _nrt=False)
-def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, egc, egs, nvol, cbuf, props,
             vcur, dvol, dmr, acc, rate, E, xfer, xrate, have_props):
     """Time derivatives of all states at the start (stage 0) or end (stage 1) of step ``s_step``.
 
     ``xfer`` / ``xrate``: what the pipes bring each volume over the step (1D; see :func:`.pipenet.pipe_step`),
     added as constant rates in both stages.  ``have_props``: ``props`` already holds this state.
+    ``egc`` / ``egs``: the end gas of each cylinder (see :func:`run_engine`).
     Returns a failure code (0 = ok).  ``acc`` receives the rates of the cycle integrals.
     """
     ncyl = int(par[P_NCYL])
@@ -235,10 +236,16 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, n
         g = props[k, PR_G]
         rate[k] -= (g * p * dvdt + (g - 1.0) * q) / vcur[k]
 
-        # end-gas autoignition (Livengood-Wu integrand 1/tau)
+        # end-gas autoignition (Livengood-Wu integrand (1 - x_b)^d / tau).  Before the spark the whole charge
+        # is end gas (its temperature is the cylinder's); from the spark on, the unburned gas follows the
+        # variable-cp isentrope through the cylinder pressure from its state at the spark.
         if tab[T_KWIN, le] > 0.5:
-            tu = end_gas_temperature(p, ref[k, 0], ref[k, 1], ref[k, 3])
-            acc[base + AC_KNOCK] += 1.0 / ignition_delay(p, tu, par[P_KN_A], par[P_KN_N], par[P_KN_B])
+            if phase > 1.5 and egs[k, 4] > 0.5:
+                tu = end_gas_temperature(egc[k], egs[k, 0] + egs[k, 1] * math.log(p), egs[k, 2])
+                egs[k, 2] = tu
+            else:
+                tu = t
+            acc[base + AC_KNOCK] += egs[k, 3] / ignition_delay(p, tu, par[P_KN_A], par[P_KN_N], par[P_KN_B])
 
     # ---- orifice elements.  Those outside the network first, so that their flows enter the network
     # solve as known pressure rates.
@@ -422,6 +429,11 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
         if tab[T_PHASE, li0] > 1.5 and li0 != idx_soc:
             xb0 = tab[T_XB, li0]
             ref[k, 4] = vol[k, V_MM] / (1.0 - xb0) if xb0 < 1.0 - 1e-9 else vol[k, V_MM]
+    # end gas per cylinder: mixed NASA block of its composition at the spark, and
+    # [s0(T_soc) - R ln p_soc, R, last temperature (Newton start), dilution factor (1 - x_b)^d, isentrope set]
+    egc = np.zeros((ncyl, 2, 7))
+    egs = np.zeros((ncyl, 5))
+    egs[:, 3] = 1.0
     knock_run = np.zeros(ncyl)       # running Livengood-Wu integral since IVC
     knock_cyc = np.zeros(ncyl)       # value reached in this cycle
     trapped = np.zeros(ncyl)
@@ -483,6 +495,8 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                     resid[k] = vol[k, V_MP] / m
                     knock_cyc[k] = max(knock_cyc[k], knock_run[k])
                     knock_run[k] = 0.0
+                    egs[k, 3] = dilution_factor(resid[k], par[P_KN_D])
+                    egs[k, 4] = 0.0
                 if li == idx_soc:
                     ref[k, 4] = vol[k, V_MM]
             # ---- pipes: one crank step in sub-steps, against the volumes' start-of-step state
@@ -508,7 +522,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 if cour > max_cour:
                     max_cour = cour
             # ---- stage 1
-            fail = _derivs(vol, mr, s, 0, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+            fail = _derivs(vol, mr, s, 0, par, tab, offs, hcoeffs, rsp, fuel_c, ref, egc, egs, nvol, cbuf, props,
                            vcur, d0, dm0, a0, rate, E, xfer, xrate, have)
             if fail != 0:
                 break
@@ -522,6 +536,15 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                     pmax[k] = p
                     ang = li * (720.0 / nstep)
                     pmax_ang[k] = ang if ang < 360.0 else ang - 720.0
+                if li == idx_soc:    # end gas: composition and entropy at the spark
+                    m = vol[k, V_MA] + vol[k, V_MM] + vol[k, V_MP]
+                    if m > 0.0:
+                        mix_coeffs(coeffs, vol[k, V_MA] / m, vol[k, V_MM] / m, vol[k, V_MP] / m, egc[k])
+                        r_u = (vol[k, V_MA] * rsp[0] + vol[k, V_MM] * rsp[1] + vol[k, V_MP] * rsp[2]) / m
+                        egs[k, 0] = s0_mass(egc[k], props[k, PR_T]) - r_u * math.log(p)
+                        egs[k, 1] = r_u
+                        egs[k, 2] = props[k, PR_T]
+                        egs[k, 4] = 1.0
                 if li == idx_ivc:
                     ref[k, 0] = p
                     ref[k, 1] = props[k, PR_T]
@@ -551,7 +574,7 @@ def run_engine(par, tab, offs, coeffs, rsp, fuel_c, vol, mr, ref, vfix, out, tra
                 t_start[i] = t0
             for i in range(mr.shape[0]):
                 mr1[i] = mr[i] + dt * dm0[i]
-            fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, nvol, cbuf, props,
+            fail = _derivs(vol1, mr1, s, 1, par, tab, offs, hcoeffs, rsp, fuel_c, ref, egc, egs, nvol, cbuf, props,
                            vcur, d1, dm1, a1, rate, E, xfer, xrate, False)
             if fail != 0:
                 break

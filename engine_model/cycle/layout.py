@@ -62,7 +62,7 @@ P_ER_L = 25
 P_ER_K = 26
 P_ER_INERTIA = 27
 P_TP_CDA = 28       # tailpipe effective area [m2]
-P_KN_A = 29         # Douaud-Eyzat A*(ON/100)^a [s]
+P_KN_A = 29         # Douaud-Eyzat A*(ON/100)^a times the calibrated delay multiplier [s]
 P_KN_N = 30         # pressure exponent [-]
 P_KN_B = 31         # activation temperature [K]
 P_COMBUSTION = 32   # 1 = fired, 0 = motored
@@ -88,7 +88,8 @@ P_PHT_A_EX = 51     # exhaust port wall area [m2]
 P_PHT_D_EX = 52     # exhaust port hydraulic diameter [m]
 P_PHT_TW_EX = 53    # exhaust port wall temperature [K]
 P_FRIC_EVERY = 54   # pipe friction factors refreshed every this many pipe sub-steps
-NPAR = 55
+P_KN_D = 55         # dilution exponent d of the ignition delay, tau ~ (1 - x_burned)^-d [-]
+NPAR = 56
 
 # ------------------------------------------------------------------ runner state array (mr)
 # lumped gas exchange: mr[: ncyl * (nseg_in + nseg_ex)] are the runner segment mass flows [kg/s]

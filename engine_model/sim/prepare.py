@@ -24,7 +24,6 @@ GAMMA_MOTORED = 1.35       # polytropic exponent of the Woschni motored-pressure
 # Wiebe sweep of benchmarks/bench_cycle.py.
 ACCEL_MODES = 4
 ACCEL_WARMUP = 3
-KNOCK_END_FRACTION = 0.99  # end gas counted as consumed at 99 % burned
 # Runner wall friction is evaluated at the cycle-mean flow of one runner; the
 # friction factor varies as Re^-0.2 or less, so these reference values move it
 # by a few % at most (and the runner's loss by < 1 % of a dynamic head).
@@ -163,7 +162,7 @@ def angle_tables(spec: EngineSpec, op: OperatingPoint, nstep: int) -> np.ndarray
         # (spec.losses, neutral 1)
         eta_c = spec.losses.combustion_efficiency * spec.charge.combustion_efficiency(op.lam)
         tab[L.T_XB] = eta_c * np.where(a < evo, xb, xb_evo)
-        ca_end = wiebe.angle_at_fraction(KNOCK_END_FRACTION, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
+        ca_end = wiebe.angle_at_fraction(spec.knock.end_burn_fraction, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
         tab[L.T_KWIN] = (closed & (a < ca_end)).astype(float)
     v_ivc = kinematics.cylinder_volume(ivc, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
     tab[L.T_VMOT] = np.where(closed, (v_ivc / vol) ** GAMMA_MOTORED, 0.0)
@@ -234,7 +233,8 @@ def kernel_inputs(spec: EngineSpec, op: OperatingPoint, solver: SolverSettings =
     par[L.P_IR_NSEG] = nsi
     par[L.P_ER_NSEG] = nse
     par[L.P_TP_CDA] = ex.tailpipe_cd * math.pi / 4.0 * ex.tailpipe_diameter_m**2
-    par[L.P_KN_A] = kn.delay_coeff_s * (kn.octane_number / 100.0) ** kn.octane_exponent
+    par[L.P_KN_A] = kn.delay_coeff_effective_s
+    par[L.P_KN_D] = kn.dilution_exponent
     par[L.P_KN_N] = kn.pressure_exponent
     par[L.P_KN_B] = kn.activation_temp_k
     par[L.P_COMBUSTION] = 0.0 if op.motored else 1.0

@@ -60,25 +60,80 @@ class FrictionSpec:
 
 @dataclass(frozen=True)
 class KnockSpec:
-    """Douaud-Eyzat ignition delay of the end gas, tau = A*(ON/100)^a * p[atm]^-n * exp(B/T).
+    """End-gas autoignition: Douaud-Eyzat ignition delay with dilution, integrated as a Livengood-Wu integral.
 
-    Integrated as a Livengood-Wu integral; knock index 1 = autoignition before the
-    end gas is consumed.
+    tau = m_cal * A * (OI/100)^a * (p / 1 atm)^-n * exp(B / T_u) / (1 - x_b)^d; the knock index is
+    the integral of 1/tau [1/s] over time from IVC until ``end_burn_fraction`` of the charge has
+    burned (1 = autoignition before the end gas is consumed).  T_u: the cylinder temperature
+    before the spark, then the variable-cp isentrope through the cylinder pressure from the
+    state at the spark; x_b: burned-gas (residual and EGR) mass fraction of the charge at IVC.
+
+    Attributes
+    ----------
+    research_octane, motor_octane : float
+        RON and MON of the fuel [-]; their mean is the anti-knock index (R+M)/2.
+    octane_sensitivity_k : float
+        K of the octane index OI = RON - K (RON - MON) that enters the correlation
+        (Kalghatgi 2001, SAE 2001-01-3584); K = 0.5 makes OI the anti-knock index,
+        K = 0 the RON, K = 1 the MON.
+    delay_coeff_s, octane_exponent, pressure_exponent, activation_temp_k : float
+        A [s], a, n and B [K] of Douaud and Eyzat (1978, SAE 780080).
+    dilution_exponent : float
+        d [-]; 0 ignores burned gas in the end gas.
+    end_burn_fraction : float
+        Burned fraction at which the integral stops [-].
+    delay_multiplier : float
+        m_cal [-]: 1 for the literature constants; the knock calibration on bench data
+        (:mod:`engine_model.knock`) writes its estimate here.
+    cycle_ca50_advance_deg : float
+        How much earlier than the mean cycle the fastest cycles that matter for knock
+        burn [deg crank]: a spark is knock-free when the knock index stays below 1 with
+        the burn advanced by this much (the calibration reads the bench the same way).
     """
 
-    octane_number: float
+    research_octane: float
+    motor_octane: float
+    octane_sensitivity_k: float
     delay_coeff_s: float
     octane_exponent: float
     pressure_exponent: float
     activation_temp_k: float
+    dilution_exponent: float = 1.0
+    end_burn_fraction: float = 0.9
+    delay_multiplier: float = 1.0
+    cycle_ca50_advance_deg: float = 3.0
 
     def __post_init__(self):
         o = "knock"
-        check(o, "octane_number", self.octane_number, 40.0, 130.0)
+        check(o, "research_octane", self.research_octane, 40.0, 130.0)
+        check(o, "motor_octane", self.motor_octane, 40.0, 130.0)
+        if self.motor_octane > self.research_octane:
+            raise ValueError(f"knock.motor_octane = {self.motor_octane!r} exceeds knock.research_octane = "
+                             f"{self.research_octane!r}; a fuel's MON is not above its RON")
+        check(o, "octane_sensitivity_k", self.octane_sensitivity_k, -2.0, 2.0)
         check(o, "delay_coeff_s", self.delay_coeff_s, 0.0, 1.0, lo_open=True)
         check(o, "octane_exponent", self.octane_exponent, 0.0, 10.0)
         check(o, "pressure_exponent", self.pressure_exponent, 0.0, 5.0)
         check(o, "activation_temp_k", self.activation_temp_k, 0.0, 20000.0)
+        check(o, "dilution_exponent", self.dilution_exponent, 0.0, 5.0)
+        check(o, "end_burn_fraction", self.end_burn_fraction, 0.5, 0.999)
+        check(o, "delay_multiplier", self.delay_multiplier, 1e-3, 1e3)
+        check(o, "cycle_ca50_advance_deg", self.cycle_ca50_advance_deg, 0.0, 15.0)
+
+    @property
+    def octane_index(self) -> float:
+        """OI = RON - K (RON - MON) [-], the octane number the correlation uses."""
+        return self.research_octane - self.octane_sensitivity_k * (self.research_octane - self.motor_octane)
+
+    @property
+    def anti_knock_index(self) -> float:
+        """(RON + MON) / 2 [-]."""
+        return 0.5 * (self.research_octane + self.motor_octane)
+
+    @property
+    def delay_coeff_effective_s(self) -> float:
+        """m_cal * A * (OI/100)^a [s]: the pre-factor of the delay at 1 atm, 1/T = 0, no dilution."""
+        return self.delay_multiplier * self.delay_coeff_s * (self.octane_index / 100.0) ** self.octane_exponent
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ References
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
@@ -52,7 +53,8 @@ __all__ = ["build_maps"]
 
 def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_table: LambdaTable | str | Path | None = None,
                evaluate: Callable[[pd.DataFrame], pd.DataFrame] | None = None, settings: MapSettings | None = None,
-               step_deg: float = 0.5, progress: Callable[[str, int], None] | None = None) -> MapResult:
+               step_deg: float = 0.5, progress: Callable[[str, int], None] | None = None,
+               bench: pd.DataFrame | None = None) -> MapResult:
     """Build the spark-advance, injection-time and target-lambda tables on an ECU grid.
 
     Parameters
@@ -76,6 +78,12 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
         Crank-angle step of the default evaluator [deg].
     progress : callable(stage, n_points), optional
         Called after each batch.
+    bench : DataFrame, optional
+        Bench points (``speed_rpm, throttle_pct, spark_deg_btdc`` and optional ``at_mbt``, ``knock``).  A cell
+        at a point's speed (within 1 rpm) and throttle (within 0.5 %) that the bench ran at MBT without knock
+        takes the bench's spark (``spark_source`` "bench", ``limited_by`` "bench"): a measured clean MBT beats
+        the model's extrapolation; smoothing keeps it and verification does not retard it (the model's knock
+        index there is still reported, in ``knock_index_cycle``).
 
     Returns
     -------
@@ -84,6 +92,8 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     t0 = time.perf_counter()
     grid = EcuGrid() if grid is None else grid
     st = MapSettings() if settings is None else settings
+    if st.cycle_advance_deg is None:
+        st = dataclasses.replace(st, cycle_advance_deg=spec.knock.cycle_ca50_advance_deg)
     if not isinstance(grid, EcuGrid):
         raise ValueError(f"grid must be an EcuGrid, got {type(grid).__name__}")
     grid.check_spec(spec)
@@ -100,11 +110,12 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     cells = grid.cells().set_index("cell", drop=False)
     cells["lambda"] = lam_tab.on_grid(grid).ravel()
     cells["spark_prior_deg_btdc"] = model_spark(model, cells, st)
-    runner = SparkRunner(model, cells, evaluate, progress)
+    runner = SparkRunner(model, cells, evaluate, progress, st.cycle_advance)
     stages = _search(runner, cells, st)
     ev = runner.evaluations()
     _zones(cells, ev, st)
     applied, border_safe = _knock_uncertainty(runner, ev, cells, st)
+    border_safe = _honour_bench(cells, bench, border_safe)
     sinfo = _smooth_spark(cells, grid, st, border_safe)
     fixes = _verify(runner, ev, cells, st)
     inj, have = _injection(cells, grid, spec, st)
@@ -162,13 +173,13 @@ def _search(runner: SparkRunner, cells: pd.DataFrame, st: MapSettings) -> int:
 def _best_so_far(ev: pd.DataFrame, c: int, st: MapSettings) -> dict:
     """Resolution of a cell the search stages did not finish: its best knock-safe point so far."""
     lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
-    grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index"] < st.knock_limit)]
+    grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index_cycle"] < st.knock_limit)]
     if grp.empty:
         kind, what = decide_cell(ev[ev["cell"] == c], st)
         return what if kind == "done" else {"status": "zone1" if len(ev[ev["cell"] == c]) else "failed",
                                             "mbt": math.nan, "border": lo, "raw": lo, "limited_by": "infeasible"}
     b = grp.loc[grp["brake_torque_nm"].idxmax()]
-    knocked = ev[(ev["cell"] == c) & (ev["knock_index"] >= st.knock_limit)]
+    knocked = ev[(ev["cell"] == c) & (ev["knock_index_cycle"] >= st.knock_limit)]
     border = float(grp["spark_deg_btdc"].max()) if len(knocked) else hi
     return {"status": "ok", "mbt": math.nan, "border": border, "raw": float(b["spark_deg_btdc"]),
             "limited_by": "knock" if float(b["spark_deg_btdc"]) >= border - 1e-6 else "mbt"}
@@ -184,7 +195,7 @@ def _zones(cells: pd.DataFrame, ev: pd.DataFrame, st: MapSettings) -> None:
             best_rows.append({"spark_deg_btdc": raw, "knock_index": math.nan, "bmep_bar": math.nan})
         else:
             r = grp.loc[(grp["spark_deg_btdc"] - raw).abs().idxmin()]
-            best_rows.append({"spark_deg_btdc": raw, "knock_index": r["knock_index"], "bmep_bar": r["bmep_bar"]})
+            best_rows.append({"spark_deg_btdc": raw, "knock_index": r["knock_index_cycle"], "bmep_bar": r["bmep_bar"]})
     best = pd.DataFrame(best_rows)
     plan = cells[["throttle_pct", "speed_rpm", "lambda"]].copy()
     plan["spark_deg_btdc"] = best["spark_deg_btdc"].to_numpy()
@@ -218,6 +229,30 @@ def _knock_uncertainty(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFram
     return applied, border_safe
 
 
+def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: np.ndarray) -> np.ndarray:
+    """Pin the cells the bench ran clean at MBT to the bench's spark (``bench_spark_deg_btdc``); returns the
+    knock-safe border raised to that spark where needed (the bench ran it without knock)."""
+    cells["bench_spark_deg_btdc"] = np.nan
+    if bench is None or not len(bench):
+        return border_safe
+    knock = bench["knock"].fillna(False).astype(bool).to_numpy() if "knock" in bench.columns else np.zeros(len(bench), bool)
+    at_mbt = bench["at_mbt"].fillna(True).astype(bool).to_numpy() if "at_mbt" in bench.columns else ~knock
+    th, sp = cells["throttle_pct"].to_numpy(float), cells["speed_rpm"].to_numpy(float)
+    for (_, r), clean in zip(bench.iterrows(), at_mbt & ~knock):
+        hit = np.flatnonzero((np.abs(th - float(r["throttle_pct"])) < 0.5) & (np.abs(sp - float(r["speed_rpm"])) < 1.0))
+        if clean and hit.size:
+            cells.iloc[hit[0], cells.columns.get_loc("bench_spark_deg_btdc")] = float(r["spark_deg_btdc"])
+    pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
+    if not pinned.any():
+        return border_safe
+    spark = cells["bench_spark_deg_btdc"].to_numpy(float)
+    cells.loc[pinned, "spark_raw_deg_btdc"] = spark[pinned]
+    cells.loc[pinned, "feasible"] = True
+    cells.loc[pinned, "infeasible_reason"] = ""
+    cells.loc[pinned, "limited_by"] = "bench"
+    return np.where(pinned, np.fmax(border_safe, spark), border_safe)
+
+
 def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_safe: np.ndarray) -> dict:
     """Smooth the spark table (feasible cells are data; others are filled; zone 1 pinned to spark_min)."""
     lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
@@ -229,13 +264,15 @@ def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_sa
     shape = grid.shape
     # uniform weights: measured on the default R6 map, torque-curvature weights cost more torque (mean 1.3 % vs
     # 1.1 %, max 8.2 % both at a 10 deg bound), because most forced moves are knock-limited cells that can only retard
+    pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
+    lower = np.where(pinned, cells["bench_spark_deg_btdc"].to_numpy(float), lo)
     spark, sinfo = smooth_table(cells["spark_raw_deg_btdc"].to_numpy(float).reshape(shape),
-                                feas.astype(float).reshape(shape), np.full(shape, lo), upper.reshape(shape),
+                                feas.astype(float).reshape(shape), lower.reshape(shape), upper.reshape(shape),
                                 st.max_second_diff_deg, stencil=~zone1.reshape(shape))
     # ECU resolution 0.1 deg, rounded down (towards retard: never past the knock border); this exact value is verified
     cells["spark_deg_btdc"] = np.floor(spark.ravel() * 10.0 + 1e-6) / 10.0
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
-    cells["spark_source"] = np.where(feas, "simulation", np.where(zone1, "spark_min", "fill"))
+    cells["spark_source"] = np.where(pinned, "bench", np.where(feas, "simulation", np.where(zone1, "spark_min", "fill")))
     return sinfo
 
 
@@ -246,6 +283,7 @@ def _verify(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFrame, st: MapS
     """
     lo = st.spark_min_deg_btdc
     feas = cells["feasible"].to_numpy()
+    pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
     ver = {}
     for c in cells["cell"][~feas]:   # not verified: nearest searched point (air flow for the injection fill)
         grp = ev[(ev["cell"] == c) & np.isfinite(ev["brake_torque_nm"])]
@@ -264,12 +302,14 @@ def _verify(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFrame, st: MapS
         if not todo:
             break
         out = runner.run(todo, f"v{rnd}")
+        evc = runner.evaluations()
+        out = evc.iloc[len(evc) - len(out):].reset_index(drop=True)
         todo = {}
         for _, r in out.iterrows():
             c = int(r["cell"])
             ver[c] = r
-            k = r["knock_index"]
-            if feas[c] and np.isfinite(k) and k >= st.knock_limit and rnd <= st.max_fix_rounds:
+            k = r["knock_index_cycle"]
+            if feas[c] and np.isfinite(k) and k >= st.knock_limit and rnd <= st.max_fix_rounds and not pinned[c]:
                 new = _knock_fix(ev, c, float(r["spark_deg_btdc"]), k, st, lo)
                 cells.at[c, "spark_deg_btdc"] = new
                 cells.at[c, "limited_by"] = "knock"
@@ -279,14 +319,14 @@ def _verify(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFrame, st: MapS
             break
     vt = pd.DataFrame([ver[c] for c in cells["cell"]], index=cells.index)
     # plenum pressure (cycle mean), trapped mass and volumetric efficiency: the MAP axis and VE of the ECU exports
-    for col in ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
-                "fuel_mass_flow_kg_h", "exhaust_temp_k", "plenum_pressure_bar", "trapped_mass_mg", "vol_eff",
-                "bdur_10_90_deg", "wiebe_m"):
+    for col in ("brake_torque_nm", "knock_index", "knock_index_cycle", "bmep_bar", "ca50_deg_atdc",
+                "air_mass_flow_kg_h", "fuel_mass_flow_kg_h", "exhaust_temp_k", "plenum_pressure_bar",
+                "trapped_mass_mg", "vol_eff", "bdur_10_90_deg", "wiebe_m"):
         cells[col] = pd.to_numeric(vt[col], errors="coerce").astype(float).to_numpy()
     cells["verify_status"] = vt["status"].astype(str).to_numpy()
-    cells["verified"] = ~(feas & ~(cells["knock_index"].to_numpy(float) < st.knock_limit))
+    cells["verified"] = ~(feas & ~pinned & ~(cells["knock_index_cycle"].to_numpy(float) < st.knock_limit))
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)
-    best_safe = ev[np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index"] < st.knock_limit)] \
+    best_safe = ev[np.isfinite(ev["brake_torque_nm"]) & (ev["knock_index_cycle"] < st.knock_limit)] \
         .groupby("cell")["brake_torque_nm"].max()
     ref = cells["cell"].map(best_safe).astype(float).to_numpy()
     cells["torque_best_searched_nm"] = ref

@@ -80,9 +80,12 @@ def wide_table(result: MapResult, name: str) -> pd.DataFrame:
 
 def cell_label(name: str, value: float, dec: int, limited_by: str) -> str:
     """Text of one heatmap cell: the value (one decimal less than the CSV from 2 decimals on), with an
-    asterisk on a knock-limited cell of a spark table (no letter suffix, which would read as a unit)."""
+    asterisk on a knock-limited cell of a spark table and a dagger on a cell pinned to the bench's measured clean
+    MBT spark (no letter suffix, which would read as a unit)."""
     txt = f"{value:.{max(dec - 1, 0) if dec > 1 else dec}f}"
-    return txt + "*" if name.startswith("spark") and limited_by == "knock" else txt
+    if name.startswith("spark") and limited_by == "knock":
+        return txt + "*"
+    return txt + "\u2020" if name.startswith("spark") and limited_by == "bench" else txt
 
 
 def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Path:
@@ -121,6 +124,8 @@ def plot_table(result: MapResult, name: str, path, annotate: bool = True) -> Pat
     note = "hatched: infeasible"
     if name.startswith("spark"):
         note += "; *: knock-limited (outlined)"
+        if (lim == "bench").any():
+            note += "; \u2020: bench's clean MBT spark"
     ax.set_title(f"{title}\n{note}", fontsize=8)
     fig.colorbar(im, ax=ax, label=unit, fraction=0.04, pad=0.02)
     fig.tight_layout()

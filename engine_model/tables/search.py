@@ -18,7 +18,7 @@ from engine_model import priors, wiebe
 from engine_model.globalmodel.mapmodel import ca50_offset_deg
 from engine_model.tables.settings import MapSettings
 
-__all__ = ["EVAL_COLUMNS", "SparkRunner", "decide_cell", "model_spark", "uncertainty_retard"]
+__all__ = ["EVAL_COLUMNS", "SparkRunner", "cycle_knock", "decide_cell", "model_spark", "uncertainty_retard"]
 
 
 def _predict(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
@@ -77,6 +77,67 @@ def _knock_cross(s1, k1, s2, k2, limit) -> float:
     return float(s1)
 
 
+# --------------------------------------------------------------------------- knock of the fastest cycles
+
+#: d ln(knock index)/d spark [1/deg] where a cell has a single evaluated point: 0.045-0.048 measured at WOT
+#: 8000-11000 rpm on the default R6 model at Table 2's identified burns (spark +3 deg).
+_KNOCK_SLOPE_FALLBACK = 0.05
+#: Range of the end slopes used to extrapolate [1/deg]: a flatter slope would put the fastest cycles' knock
+#: below the mean cycle's, a steeper one is outside anything the model gives.
+_KNOCK_SLOPE_RANGE = (0.01, 0.3)
+
+
+def cycle_knock(s: np.ndarray, k: np.ndarray, advance: float) -> np.ndarray:
+    """Knock index of the fastest cycles at each spark of one cell [-].
+
+    The fastest cycles burn ``advance`` deg earlier than the mean cycle; their knock index at spark
+    ``s`` is taken as the mean cycle's at ``s + advance``: log-linear interpolation through the cell's
+    evaluated points, extrapolated beyond them with the end segment's slope (clipped to
+    ``_KNOCK_SLOPE_RANGE``; ``_KNOCK_SLOPE_FALLBACK`` for a single point).  NaN stays NaN; 0 stays 0.
+    """
+    s = np.asarray(s, float)
+    k = np.asarray(k, float)
+    out = k.copy()
+    if advance <= 0:
+        return out
+    good = np.isfinite(s) & np.isfinite(k) & (k > 0)
+    if not good.any():
+        return out
+    frame = pd.DataFrame({"s": s[good], "y": np.log(k[good])}).groupby("s")["y"].mean()
+    xs, ys = frame.index.to_numpy(float), frame.to_numpy(float)
+    lo, hi = _KNOCK_SLOPE_RANGE
+    if xs.size == 1:
+        slope_lo = slope_hi = _KNOCK_SLOPE_FALLBACK
+    else:
+        slope_lo = float(np.clip((ys[1] - ys[0]) / (xs[1] - xs[0]), lo, hi))
+        slope_hi = float(np.clip((ys[-1] - ys[-2]) / (xs[-1] - xs[-2]), lo, hi))
+    u = s[good] + advance
+    y = np.interp(u, xs, ys)
+    y = np.where(u > xs[-1], ys[-1] + slope_hi * (u - xs[-1]), y)
+    y = np.where(u < xs[0], ys[0] + slope_lo * (u - xs[0]), y)
+    out[good] = np.exp(y)
+    return out
+
+
+def with_cycle_knock(ev: pd.DataFrame, advance: float) -> pd.DataFrame:
+    """``ev`` with ``knock_index_cycle``: :func:`cycle_knock` per cell over all of the cell's points."""
+    ev = ev.copy()
+    if ev.empty:
+        ev["knock_index_cycle"] = pd.Series(dtype=float)
+        return ev
+    out = np.full(len(ev), np.nan)
+    pos = np.arange(len(ev))
+    # the uncertainty stage's rows ran another (pessimistic) burn: not part of the cell's spark sweep
+    same_burn = ~ev["stage"].astype(str).str.startswith("u").to_numpy() if "stage" in ev.columns \
+        else np.ones(len(ev), bool)
+    for _c, idx in ev[same_burn].groupby("cell").indices.items():
+        idx = pos[same_burn][idx]
+        out[pos[idx]] = cycle_knock(ev["spark_deg_btdc"].to_numpy(float)[idx],
+                                    ev["knock_index"].to_numpy(float)[idx], advance)
+    ev["knock_index_cycle"] = out
+    return ev
+
+
 # --------------------------------------------------------------------------- the spark search
 
 EVAL_COLUMNS = ("brake_torque_nm", "knock_index", "bmep_bar", "ca50_deg_atdc", "air_mass_flow_kg_h",
@@ -116,6 +177,7 @@ def decide_cell(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
     ok = ev[np.isfinite(ev["brake_torque_nm"]) & np.isfinite(ev["knock_index"])].sort_values("spark_deg_btdc")
     ok = ok.drop_duplicates("spark_deg_btdc")
     s, tq, kn = (ok[c].to_numpy(float) for c in ("spark_deg_btdc", "brake_torque_nm", "knock_index"))
+    kn = cycle_knock(s, kn, st.cycle_advance)    # knock-free means: the fastest cycles too
     eps = 1e-6
     if s.size == 0:
         return "done", {"status": "failed", "mbt": math.nan, "border": math.nan, "raw": math.nan,
@@ -169,8 +231,9 @@ def decide_cell(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
 class SparkRunner:
     """Batched evaluations: builds one plan per stage (rows of a cell consecutive, spark ascending)."""
 
-    def __init__(self, model, cells: pd.DataFrame, evaluate, progress):
+    def __init__(self, model, cells: pd.DataFrame, evaluate, progress, advance: float = 0.0):
         self.model, self.cells, self.evaluate, self.progress = model, cells, evaluate, progress
+        self.advance = float(advance)
         self.frames: list[pd.DataFrame] = []
         self.calls = 0
         self.points = 0
@@ -218,7 +281,9 @@ class SparkRunner:
         return out
 
     def evaluations(self) -> pd.DataFrame:
-        return pd.concat(self.frames, ignore_index=True) if self.frames else pd.DataFrame()
+        """All evaluations so far, with ``knock_index_cycle`` (the fastest cycles', :func:`cycle_knock`)."""
+        ev = pd.concat(self.frames, ignore_index=True) if self.frames else pd.DataFrame(columns=["cell"])
+        return with_cycle_knock(ev, self.advance)
 
 
 # --------------------------------------------------------------------------- knock safety against model uncertainty
@@ -281,9 +346,10 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
 
     For each cell with a resolved knock border (``spark_border_deg_btdc`` below spark_max), at the border spark:
     ``sigma`` = 1-sigma of the model's CA50 offset; ``g`` = (d ln K / d earlier CA50) / (d ln K / d spark), the
-    first from one extra simulation with the burn made ``_PHASING_FD_DEG`` faster (BDUR10-90 scaled, m kept:
-    a faster burn is the pessimistic side of the knock index, docs/sections/knock_uncertainty.md), the second
-    from the search's own points around the border; retard = z * sigma * g [deg].  One batched evaluate call
+    first from one extra simulation with the burn made ``_PHASING_FD_DEG`` faster (BDUR10-90 scaled, m kept),
+    the second from the search's own points around the border; retard = z * sigma * |g| [deg]: the burn error
+    has either sign, and which side knocks more depends on the cell (a faster burn advances CA50 but, with the
+    knock integral ending at the end-gas burn fraction, also consumes the end gas sooner).  One batched evaluate call
     (stage ``u1``), only for the cells that need it.  Returns columns ``phasing_std_deg, knock_phasing_gain,
     knock_phasing_gain_measured, knock_uncertainty_border_retard_deg`` indexed like ``cells`` (0 / NaN / False
     where not applicable; gain not measured: the fallback ``_PHASING_GAIN_FALLBACK``).
@@ -329,8 +395,8 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
         k0 = float(at["knock_index"].iloc[0]) if len(at) else math.nan
         gain = _PHASING_GAIN_FALLBACK
         if math.isfinite(slope) and k0 > 0 and k_fast[j] > 0 and math.isfinite(k_fast[j]):
-            # clipped: a knock index that falls with a faster burn means no retard; > 3 deg/deg is not physical here
-            gain = float(np.clip(math.log(k_fast[j] / k0) / delta[go][j] / slope, 0.0, 3.0))
+            # magnitude: an error of either sign is as likely; > 3 deg/deg is not physical here
+            gain = float(np.clip(abs(math.log(k_fast[j] / k0)) / delta[go][j] / slope, 0.0, 3.0))
             out.at[c, "knock_phasing_gain_measured"] = True
         out.at[c, "knock_phasing_gain"] = gain
         out.at[c, "knock_uncertainty_border_retard_deg"] = z * float(out.at[c, "phasing_std_deg"]) * gain

@@ -24,9 +24,16 @@ class MapSettings:
     Attributes
     ----------
     knock_margin : float
-        Table cells must satisfy ``knock_index < 1 - knock_margin`` [-]
-        (default 0.15: limit 0.85; the knock model is a Livengood-Wu integral
-        with uncertain constants, so the border is kept away from 1).
+        Table cells must satisfy ``knock index of the fastest cycles < 1 - knock_margin`` [-].
+        Default 0: the safety is explicit elsewhere: the fastest cycles
+        (``cycle_advance_deg``), the knock calibration's multiplier taken at its
+        conservative quantile, and the combustion model's uncertainty
+        (``knock_uncertainty_z``).
+    cycle_advance_deg : float or None
+        The fastest cycles burn this much earlier than the mean cycle [deg]; a
+        spark is knock-free when the knock index at ``spark + cycle_advance_deg``
+        stays below the limit.  None (default): the engine spec's
+        ``knock.cycle_ca50_advance_deg``.
     safety_retard_deg : float
         Retard from MBT applied where MBT (not knock) sets the spark [deg]
         (default 0: the torque plateau near MBT is flat, 2 deg cost < 0.5 %).
@@ -78,7 +85,8 @@ class MapSettings:
         0 ignores the uncertainty; models without ``*_std`` outputs get none.
     """
 
-    knock_margin: float = 0.15
+    knock_margin: float = 0.0
+    cycle_advance_deg: float | None = None
     safety_retard_deg: float = 0.0
     spark_min_deg_btdc: float = 0.0
     spark_max_deg_btdc: float = 70.0
@@ -100,6 +108,8 @@ class MapSettings:
             if not ok:
                 raise ValueError(f"MapSettings.{name} = {getattr(self, name)!r}: {rule}")
         need(0 <= self.knock_margin < 1, "knock_margin", "must lie in [0, 1)")
+        need(self.cycle_advance_deg is None or 0 <= self.cycle_advance_deg <= 15, "cycle_advance_deg",
+             "must be None (the spec's value) or lie in [0, 15] deg")
         need(0 <= self.safety_retard_deg <= 20, "safety_retard_deg", "must lie in [0, 20] deg")
         need(-30 <= self.spark_min_deg_btdc < self.spark_max_deg_btdc <= 90, "spark_min_deg_btdc",
              "need -30 <= spark_min < spark_max <= 90 deg BTDC")
@@ -118,6 +128,11 @@ class MapSettings:
         need(self.min_bmep_bar >= 0, "min_bmep_bar", "must be >= 0 bar")
         need(isinstance(self.knock_uncertainty_z, (int, float)) and not isinstance(self.knock_uncertainty_z, bool)
              and 0 <= self.knock_uncertainty_z <= 4, "knock_uncertainty_z", "must be a number in [0, 4] (sigmas)")
+
+    @property
+    def cycle_advance(self) -> float:
+        """``cycle_advance_deg`` resolved (0 when not set; :func:`build_maps` sets it from the spec) [deg]."""
+        return 0.0 if self.cycle_advance_deg is None else float(self.cycle_advance_deg)
 
     @property
     def knock_limit(self) -> float:

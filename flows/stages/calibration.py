@@ -33,12 +33,15 @@ from prefect import flow  # noqa: E402
 
 from engine_model import calibration as cal  # noqa: E402
 from engine_model.bench import load_bench  # noqa: E402
+from engine_model import knock  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.io import write_json, write_parquet  # noqa: E402
 from engine_model.report import plot_traces, write_report  # noqa: E402
 from engine_model.sim.prepare import SolverSettings  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
+#: The knock multiplier the tables use: its posterior's Phi(-z) quantile (one-sided 84 %, the knock-prone side).
+KNOCK_Z = 1.0
 AIRFLOW_COLUMNS = ["point_id", "speed_rpm", "air_mass_flow_kg_h_meas", "air_mass_flow_kg_h_sim", "ga_rel_pct"]
 
 
@@ -80,6 +83,8 @@ def run(ctx: StageContext) -> dict:
     write_parquet(relation, out / "eta_relation.parquet")
     cal.plot_eta_relation(eta, iso, relation, figs / "eta_relation.png")
     traces = _pressure_traces(eng.with_values(match.values), meas, params, s, figs)
+    t_kn = time.perf_counter()
+    kcal, kplan = _knock_calibration(ctx, meas, params, match, s.step_deg, out, figs)
     joint = cal.joint_fit(ident)
     ident_joint = cal.identify_at_eta(ident, joint.eta_by_throttle())
     params_joint = ident_joint.table
@@ -99,6 +104,10 @@ def run(ctx: StageContext) -> dict:
                            "simulations": ev_id.points, "seconds": round(t_id, 1),
                            "eta_trans": s.eta_trans, "per_point": _per_point(params),
                            "search_range": {"bdur_10_90_deg": list(cal.BDUR_RANGE_DEG), "wiebe_m": list(cal.M_RANGE)}},
+        "knock": {**kcal.summary(), "text": kcal.text(), "simulations": len(kplan),
+                  "seconds": round(time.perf_counter() - t_kn, 1),
+                  "cycle_ca50_advance_deg": eng.knock.cycle_ca50_advance_deg,
+                  "octane_index": round(eng.knock.octane_index, 2)},
         "eta_relation": rel_text,
         "joint_fit": joint.summary(),
         "joint_eta": _joint_summary(joint, params_joint),
@@ -114,6 +123,7 @@ def run(ctx: StageContext) -> dict:
                               + ", ".join(match.names) + "):",
                               pd.DataFrame(match.correlation, columns=list(match.names))]),
         ("Combustion identification", [ident.summary(), params[[c for c in show if c in params.columns]]] + planes),
+        ("Knock calibration", [kcal.text(), kcal.evidence, figs / "knock_evidence.png"]),
         ("Pressures over the cycle", ["At the bench point nearest 9000 rpm, with the matched engine and the identified "
                                       "burn: cylinders, manifold volumes and the waves in the pipes of cylinder 1."]
          + traces),
@@ -147,8 +157,25 @@ def _pressure_traces(spec, meas, params, s, figs) -> list:
 
 
 def calibrated_engine(engine: CalibratedEngine, summary: dict) -> CalibratedEngine:
-    """The engine with the airflow-matched values of a calibration summary."""
-    return engine.calibrated({k: float(v) for k, v in summary["airflow"]["parameters"].items()})
+    """The engine with the airflow-matched values and the knock multiplier (knock-prone quantile) of a summary."""
+    values = {k: float(v) for k, v in summary["airflow"]["parameters"].items()}
+    if "knock" in summary:
+        values["knock.delay_multiplier"] = float(summary["knock"]["delay_multiplier_table"])
+    return engine.calibrated(values)
+
+
+def _knock_calibration(ctx, meas, params, match, step_deg, out, figs):
+    """Spark sweeps at the identified burns -> knock evidence per bench point -> delay multiplier; writes
+    ``knock_evidence.parquet`` and ``figures/knock_evidence.png``."""
+    eng = ctx.engine.spec
+    plan = knock.bench_sweep_plan(params, overrides=match.spec_overrides())
+    res = ctx.evaluator("knock", step_deg)(plan) if len(plan) else pd.DataFrame(
+        columns=["knock_index", "brake_torque_nm"])
+    evidence = knock.point_evidence(meas, plan, res, eng.knock.delay_multiplier, eng.knock.cycle_ca50_advance_deg)
+    kcal = knock.calibrate_knock(evidence, z=KNOCK_Z)
+    write_parquet(evidence, out / "knock_evidence.parquet")
+    knock.plot_evidence(kcal, figs / "knock_evidence.png")
+    return kcal, plan
 
 
 _POINT_KEYS = ("point_id", "speed_rpm", "eta_trans", "bdur_10_90_deg", "bdur_10_90_deg_lo", "bdur_10_90_deg_hi",
@@ -218,6 +245,8 @@ def summary_text(summary: dict) -> str:
                      + ("" if g["identifiable"] else f"; NOT identified by the data: {g['note']}"))
     lines.append(f"Identification at the joint eta_trans: {je['fit_ok']} of {je['points']} points meet power and CA50")
     lines += _point_lines(je["per_point"])
+    if "knock" in summary:
+        lines.append(summary["knock"]["text"])
     lines.append(f"wall time {summary['wall_s']:.0f} s (airflow {air['seconds']:.0f} s, {air['simulations']} "
                  f"simulations; identification {idn['seconds']:.0f} s, {idn['simulations']} simulations)")
     return "\n".join(lines)

@@ -24,8 +24,11 @@ from flows.sweep import DEFAULT_WORKERS
 
 from prefect import flow  # noqa: E402
 
+import pandas as pd  # noqa: E402
+
+from engine_model import knock  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
-from engine_model.io import write_json  # noqa: E402
+from engine_model.io import write_csv, write_json  # noqa: E402
 from engine_model.tables import (EcuGrid, LambdaTable, MapSettings, build_maps, load_model,  # noqa: E402
                                  parse_breakpoints, write_maps)
 from engine_model.version import package_version  # noqa: E402
@@ -64,16 +67,32 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     eng = ctx.engine.spec
     st = MapSettings() if st is None else st
     label = batch_label(model_file, grid, lam, st, eng.spec_hash(), ctx.settings.step_deg)
-    res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator(label), settings=st)
+    res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator(label), settings=st,
+                     bench=ctx.bench)
     paths = write_maps(res, ctx.work / "maps", spec=eng)
+    consistency = _bench_consistency(ctx, res, eng, paths)
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
                "settings": dataclasses.asdict(st),   # what a rebuild (mbc maps --run) starts from
                "created": _dt.datetime.now().isoformat(timespec="seconds"), "stats": res.stats,
                "files": {k: os.path.relpath(v, ctx.work) for k, v in paths.items()},   # relative: the run folder is renamed
                "wall_s": round(time.perf_counter() - t0, 1)}
+    if consistency is not None:
+        summary["bench_consistency"] = consistency
     write_json(summary, ctx.work / "maps" / "run.json")
     return summary
+
+
+def _bench_consistency(ctx: StageContext, res, eng, paths: dict) -> dict | None:
+    """``maps/bench_consistency.csv`` and ``.png`` from the calibration's knock evidence (None without it)."""
+    ev_file = ctx.work / "calibration" / "knock_evidence.parquet"
+    if not ev_file.is_file():
+        return None
+    evidence = pd.read_parquet(ev_file)
+    tab = knock.bench_consistency(evidence, res.cells, eng.knock.delay_multiplier)
+    paths["bench_consistency"] = write_csv(tab, ctx.work / "maps" / "bench_consistency.csv")
+    paths["bench_consistency_png"] = knock.plot_consistency(tab, ctx.work / "maps" / "bench_consistency.png")
+    return {**knock.consistency_summary(tab), "rows": tab.round(3).to_dict(orient="records")}
 
 
 def run(ctx: StageContext) -> dict:
@@ -81,7 +100,10 @@ def run(ctx: StageContext) -> dict:
     model = load_model(ctx.work / MODEL_FILE)
     grid = ecu_grid(ctx.settings.map_throttle, ctx.settings.map_speed)
     res = build_into(ctx, model, grid, model_file=ctx.work / MODEL_FILE)
-    return {"stats": res["stats"], "files": res["files"]}
+    out = {"stats": res["stats"], "files": res["files"]}
+    if "bench_consistency" in res:
+        out["bench_consistency"] = {k: v for k, v in res["bench_consistency"].items() if k != "rows"}
+    return out
 
 
 def _inputs(model: str, spec: str | None, throttle: str | None, speed: str | None, lambda_table: str | None,

@@ -1,0 +1,16 @@
+"""Knock calibration on bench data and the knock-onset sweep plan.
+
+    calibrate   bench points with identified burns -> spark sweeps on the cycle model -> the
+                Douaud-Eyzat delay multiplier (posterior over bench evidence) and the model's
+                MBT at every point
+    plan        knock-onset spark sweeps for the dyno (``mbc plan knock-sweeps``)
+    consistency a built spark table against the real bench points
+"""
+
+from engine_model.knock.calibrate import (KnockCalibration, bench_sweep_plan, calibrate_knock,
+                                          point_evidence)
+from engine_model.knock.consistency import bench_consistency, consistency_summary, plot_consistency
+from engine_model.knock.plan import knock_sweep_plan
+from engine_model.knock.plots import plot_evidence
+
+__all__ = ["KnockCalibration", "bench_consistency", "consistency_summary", "plot_consistency", "bench_sweep_plan", "calibrate_knock", "knock_sweep_plan", "plot_evidence", "point_evidence"]

@@ -1,0 +1,80 @@
+"""Real-data consistency of a built spark table: at each bench point, what the bench ran against what the
+model and the table say (model MBT at the identified burn, knock index at the bench's spark, the table there)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.interpolate import RegularGridInterpolator
+
+from engine_model.io import write_figure
+
+__all__ = ["bench_consistency", "consistency_summary", "plot_consistency"]
+
+
+def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier: float) -> pd.DataFrame:
+    """One row per bench point of the knock evidence (:func:`engine_model.knock.point_evidence`).
+
+    ``cells``: the built table's cells (``throttle_pct, speed_rpm, spark_deg_btdc``); the table's value at a
+    point is bilinear in (throttle, speed), held at the grid's edges.  ``multiplier``: the delay multiplier of
+    the engine the table was built with (knock index = index at m = 1 / multiplier).
+    """
+    th = np.unique(cells["throttle_pct"].to_numpy(float))
+    sp = np.unique(cells["speed_rpm"].to_numpy(float))
+    tab = cells.pivot_table(index="throttle_pct", columns="speed_rpm", values="spark_deg_btdc").reindex(
+        index=th, columns=sp).to_numpy(float)
+    f = RegularGridInterpolator((th, sp), tab) if th.size > 1 and sp.size > 1 else None
+    out = evidence[["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "at_mbt", "knock"]].copy()
+    out = out.rename(columns={"spark_deg_btdc": "bench_spark_deg_btdc", "knock": "bench_knock"})
+    out["model_mbt_deg_btdc"] = evidence["mbt_model_deg_btdc"].to_numpy(float)
+    out["model_mbt_minus_bench_deg"] = out["model_mbt_deg_btdc"] - out["bench_spark_deg_btdc"]
+    out["knock_index_at_bench_spark"] = evidence["ki_m1"].to_numpy(float) / multiplier
+    out["knock_index_fastest_cycles"] = evidence["ki_cycle_m1"].to_numpy(float) / multiplier
+    if f is not None:
+        q = np.column_stack([np.clip(out["throttle_pct"], th.min(), th.max()),
+                             np.clip(out["speed_rpm"], sp.min(), sp.max())])
+        out["table_spark_deg_btdc"] = f(q)
+    else:
+        out["table_spark_deg_btdc"] = math.nan
+    out["table_minus_bench_deg"] = out["table_spark_deg_btdc"] - out["bench_spark_deg_btdc"]
+    return out
+
+
+def consistency_summary(tab: pd.DataFrame) -> dict:
+    """Counts a reader checks first: MBT within 2 deg, knock index < 1 at the clean points, table within 3 deg."""
+    clean = ~tab["bench_knock"].astype(bool)
+    mbt = tab["at_mbt"].astype(bool)
+    d_mbt = tab.loc[mbt, "model_mbt_minus_bench_deg"].abs()
+    return {"points": int(len(tab)),
+            "mbt_within_2deg": f"{int((d_mbt <= 2).sum())} of {int(mbt.sum())}",
+            "knock_free_points_below_1": f"{int((tab.loc[clean, 'knock_index_fastest_cycles'] < 1).sum())} of "
+                                         f"{int(clean.sum())}",
+            "table_within_3deg": f"{int((tab['table_minus_bench_deg'].abs() <= 3).sum())} of {int(len(tab))}",
+            "max_abs_table_minus_bench_deg": round(float(tab["table_minus_bench_deg"].abs().max()), 2)
+            if len(tab) else None}
+
+
+def plot_consistency(tab: pd.DataFrame, path: Path) -> Path:
+    """Bench spark, model MBT and table spark per bench point (top); knock index of the fastest cycles (bottom)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (a1, a2) = plt.subplots(2, 1, figsize=(7.5, 5.6), sharex=True)
+    x = np.arange(len(tab))
+    a1.plot(x, tab["bench_spark_deg_btdc"], "ks", label="bench ran (clean, MBT)")
+    a1.plot(x, tab["model_mbt_deg_btdc"], "o", color="C0", mfc="none", label="model MBT at the identified burn")
+    a1.plot(x, tab["table_spark_deg_btdc"], "x", color="C3", label="spark table")
+    a1.set_ylabel("spark [deg BTDC]")
+    a1.legend(fontsize=7)
+    a1.set_title("Spark table and model against the real bench", fontsize=10)
+    a2.bar(x, tab["knock_index_fastest_cycles"], color=np.where(tab["bench_knock"], "C3", "C0"))
+    a2.axhline(1.0, color="k", lw=1)
+    a2.set_ylabel("knock index, fastest\ncycles, at bench spark")
+    a2.set_xticks(x, [str(p) for p in tab["point_id"]], rotation=60, ha="right", fontsize=7)
+    fig.tight_layout()
+    write_figure(fig, path, dpi=100)
+    plt.close(fig)
+    return Path(path)
