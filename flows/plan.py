@@ -88,7 +88,8 @@ def plan_flow(kind: str, name: str, out_dir: str = "doe_plans", n: int = 64, see
         meta.update(speeds=sp.tolist(), throttles=th.tolist(), start_map=source, step_deg=3.0, retard_deg=12.0,
                     procedure="per sweep_id, run the steps in order from the retarded start; log knock 0/1 at "
                               "every step run; stop at the first knocking step or when torque stops rising (MBT); "
-                              "rows not reached stay out of the bench file")
+                              "if the first step already knocks, retard in the same 3 deg steps until it runs "
+                              "clean and log those too; rows not reached stay out of the bench file")
     else:
         pairs = [(float(t), float(s)) for t in th for s in sp]
         plan = doe.spark_sweeps(pairs, spec=eng)

@@ -9,8 +9,8 @@
 
 from engine_model.knock.calibrate import (KnockCalibration, bench_sweep_plan, calibrate_knock,
                                           point_evidence)
-from engine_model.knock.consistency import bench_consistency, consistency_summary, plot_consistency
+from engine_model.knock.consistency import bench_consistency, consistency_summary, plot_consistency, table_trends
 from engine_model.knock.plan import knock_sweep_plan
 from engine_model.knock.plots import plot_evidence
 
-__all__ = ["KnockCalibration", "bench_consistency", "consistency_summary", "plot_consistency", "bench_sweep_plan", "calibrate_knock", "knock_sweep_plan", "plot_evidence", "point_evidence"]
+__all__ = ["KnockCalibration", "bench_consistency", "consistency_summary", "plot_consistency", "bench_sweep_plan", "calibrate_knock", "knock_sweep_plan", "plot_evidence", "point_evidence", "table_trends"]

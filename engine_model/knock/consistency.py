@@ -12,7 +12,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from engine_model.io import write_figure
 
-__all__ = ["bench_consistency", "consistency_summary", "plot_consistency"]
+__all__ = ["bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
 
 
 def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier: float) -> pd.DataFrame:
@@ -24,9 +24,12 @@ def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier: f
     """
     th = np.unique(cells["throttle_pct"].to_numpy(float))
     sp = np.unique(cells["speed_rpm"].to_numpy(float))
-    tab = cells.pivot_table(index="throttle_pct", columns="speed_rpm", values="spark_deg_btdc").reindex(
-        index=th, columns=sp).to_numpy(float)
-    f = RegularGridInterpolator((th, sp), tab) if th.size > 1 and sp.size > 1 else None
+    def table(col):
+        vals = cells.pivot_table(index="throttle_pct", columns="speed_rpm", values=col, dropna=False).reindex(
+            index=th, columns=sp).to_numpy(float)
+        return RegularGridInterpolator((th, sp), vals) if th.size > 1 and sp.size > 1 else None
+    f = table("spark_deg_btdc")
+    f_mbt = table("spark_mbt_deg_btdc") if "spark_mbt_deg_btdc" in cells.columns else None
     out = evidence[["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "at_mbt", "knock"]].copy()
     out = out.rename(columns={"spark_deg_btdc": "bench_spark_deg_btdc", "knock": "bench_knock"})
     out["model_mbt_deg_btdc"] = evidence["mbt_model_deg_btdc"].to_numpy(float)
@@ -37,8 +40,12 @@ def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier: f
         q = np.column_stack([np.clip(out["throttle_pct"], th.min(), th.max()),
                              np.clip(out["speed_rpm"], sp.min(), sp.max())])
         out["table_spark_deg_btdc"] = f(q)
+        # the map's own MBT there (global combustion model, no bench data): how far the model alone would be
+        out["map_mbt_deg_btdc"] = f_mbt(q) if f_mbt is not None else math.nan
     else:
         out["table_spark_deg_btdc"] = math.nan
+        out["map_mbt_deg_btdc"] = math.nan
+    out["map_mbt_minus_bench_deg"] = out["map_mbt_deg_btdc"] - out["bench_spark_deg_btdc"]
     out["table_minus_bench_deg"] = out["table_spark_deg_btdc"] - out["bench_spark_deg_btdc"]
     return out
 
@@ -67,6 +74,7 @@ def plot_consistency(tab: pd.DataFrame, path: Path) -> Path:
     a1.plot(x, tab["bench_spark_deg_btdc"], "ks", label="bench ran (clean, MBT)")
     a1.plot(x, tab["model_mbt_deg_btdc"], "o", color="C0", mfc="none", label="model MBT at the identified burn")
     a1.plot(x, tab["table_spark_deg_btdc"], "x", color="C3", label="spark table")
+    a1.plot(x, tab["map_mbt_deg_btdc"], "^", color="0.5", mfc="none", label="map's MBT (global model, no bench)")
     a1.set_ylabel("spark [deg BTDC]")
     a1.legend(fontsize=7)
     a1.set_title("Spark table and model against the real bench", fontsize=10)
@@ -78,3 +86,36 @@ def plot_consistency(tab: pd.DataFrame, path: Path) -> Path:
     write_figure(fig, path, dpi=100)
     plt.close(fig)
     return Path(path)
+
+
+def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
+    """Physical-trend checks of a spark table (the cells of a :class:`engine_model.tables.MapResult`).
+
+    * ``light_load_knock``: knock-limited or knock-infeasible cells at <= 20 % throttle and >= 2000 rpm, each
+      with its plenum pressure (a butterfly at 20 % passes full load at low speed on a restricted engine);
+    * ``part_load_drops``: per speed >= ``min_speed_rpm``, cells outside knock-limited and bench cells whose
+      spark lies more than 2 deg below the WOT cell's model spark (the WOT cell's MBT when the bench pinned it);
+    * ``zone1``: where knock survives full retard (expected at high throttle and low speed).
+    """
+    c = cells
+    kl = c["limited_by"].astype(str).eq("knock") | c["infeasible_reason"].astype(str).eq("knock-limited")
+    light = c[kl & (c["throttle_pct"] <= 20) & (c["speed_rpm"] >= 2000)]
+    drops = []
+    for n, g in c[c["speed_rpm"] >= min_speed_rpm].groupby("speed_rpm"):
+        g = g.set_index("throttle_pct").sort_index()
+        if 100.0 not in g.index:
+            continue
+        w = g.loc[100.0]
+        ref = float(w["spark_mbt_deg_btdc"]) if w["limited_by"] == "bench" else float(w["spark_deg_btdc"])
+        for t, r in g.iterrows():
+            if 20 <= t < 100 and r["limited_by"] not in ("knock", "bench", "infeasible") and \
+                    r["spark_deg_btdc"] < ref - 2.0:
+                drops.append({"speed_rpm": float(n), "throttle_pct": float(t), "spark": float(r["spark_deg_btdc"]),
+                              "wot_reference": ref})
+    z1 = c[c["infeasible_reason"].astype(str).eq("knock-limited")]
+    pp = "plenum_pressure_bar" if "plenum_pressure_bar" in c.columns else None
+    return {"light_load_knock": [{"speed_rpm": float(r.speed_rpm), "throttle_pct": float(r.throttle_pct),
+                                  "plenum_pressure_bar": round(float(r[pp]), 3) if pp else None}
+                                 for _, r in light.iterrows()],
+            "part_load_drops": drops,
+            "zone1": [{"speed_rpm": float(r.speed_rpm), "throttle_pct": float(r.throttle_pct)} for _, r in z1.iterrows()]}

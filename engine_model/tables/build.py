@@ -231,7 +231,8 @@ def _knock_uncertainty(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFram
 
 def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: np.ndarray) -> np.ndarray:
     """Pin the cells the bench ran clean at MBT to the bench's spark (``bench_spark_deg_btdc``); returns the
-    knock-safe border raised to that spark where needed (the bench ran it without knock)."""
+    knock-safe border with the pinned cells at exactly that spark (the smoothing's upper bound; its lower bound
+    there is the same spark, so smoothing leaves them)."""
     cells["bench_spark_deg_btdc"] = np.nan
     if bench is None or not len(bench):
         return border_safe
@@ -250,7 +251,7 @@ def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: 
     cells.loc[pinned, "feasible"] = True
     cells.loc[pinned, "infeasible_reason"] = ""
     cells.loc[pinned, "limited_by"] = "bench"
-    return np.where(pinned, np.fmax(border_safe, spark), border_safe)
+    return np.where(pinned, spark, border_safe)      # pinned: lower and upper bound of the smoothing
 
 
 def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_safe: np.ndarray) -> dict:

@@ -40,8 +40,9 @@ from engine_model.report import plot_traces, write_report  # noqa: E402
 from engine_model.sim.prepare import SolverSettings  # noqa: E402
 from engine_model.version import package_version  # noqa: E402
 
-#: The knock multiplier the tables use: its posterior's Phi(-z) quantile (one-sided 84 %, the knock-prone side).
-KNOCK_Z = 1.0
+#: The knock multiplier the tables use: the predictive quantile at which a cell called knock-free knocks with
+#: this probability (the issue's bar for the tables: <= 2 % of cells knocking on the engine).
+KNOCK_PROBABILITY = 0.02
 AIRFLOW_COLUMNS = ["point_id", "speed_rpm", "air_mass_flow_kg_h_meas", "air_mass_flow_kg_h_sim", "ga_rel_pct"]
 
 
@@ -172,7 +173,7 @@ def _knock_calibration(ctx, meas, params, match, step_deg, out, figs):
     res = ctx.evaluator("knock", step_deg)(plan) if len(plan) else pd.DataFrame(
         columns=["knock_index", "brake_torque_nm"])
     evidence = knock.point_evidence(meas, plan, res, eng.knock.delay_multiplier, eng.knock.cycle_ca50_advance_deg)
-    kcal = knock.calibrate_knock(evidence, z=KNOCK_Z)
+    kcal = knock.calibrate_knock(evidence, knock_probability=KNOCK_PROBABILITY)
     write_parquet(evidence, out / "knock_evidence.parquet")
     knock.plot_evidence(kcal, figs / "knock_evidence.png")
     return kcal, plan

@@ -92,7 +92,8 @@ def _bench_consistency(ctx: StageContext, res, eng, paths: dict) -> dict | None:
     tab = knock.bench_consistency(evidence, res.cells, eng.knock.delay_multiplier)
     paths["bench_consistency"] = write_csv(tab, ctx.work / "maps" / "bench_consistency.csv")
     paths["bench_consistency_png"] = knock.plot_consistency(tab, ctx.work / "maps" / "bench_consistency.png")
-    return {**knock.consistency_summary(tab), "rows": tab.round(3).to_dict(orient="records")}
+    return {**knock.consistency_summary(tab), "trends": knock.table_trends(res.cells),
+            "rows": tab.round(3).to_dict(orient="records")}
 
 
 def run(ctx: StageContext) -> dict:
