@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 
 from flows.run import record_stage, run_bench
-from flows.stages.context import ENGINE_FILE
+from flows.stages.context import BENCH_FILE, ENGINE_FILE
 from flows.stages.gap import run_gap
 from flows.stages.maps import MODEL_FILE, ecu_grid, run_maps
 
@@ -70,9 +70,14 @@ def maps_arguments(run, throttle=None, speed=None, grid=None, settings=None, ste
     except (OSError, ValueError):
         before = {}
     before = {k: tuple(v) if isinstance(v, list) else v for k, v in before.items()}
+    # the run's bench copy pins the cells it ran clean at MBT; its knock evidence feeds the bench report
+    bench = run / BENCH_FILE
+    evidence = run / "calibration" / "knock_evidence.parquet"
     return {"model": str(run / MODEL_FILE), "spec": str(run / ENGINE_FILE), "throttle": throttle, "speed": speed,
             "grid": grid, "settings": {**before, **(settings or {})},
-            "step_deg": step_deg if step_deg is not None else rs.get("step_deg")}
+            "step_deg": step_deg if step_deg is not None else rs.get("step_deg"),
+            "bench": str(bench) if bench.is_file() else None,
+            "knock_evidence": str(evidence) if evidence.is_file() else None}
 
 
 def rebuild_maps(run, out=None, model=None, spec=None, throttle=None, speed=None, grid=None, lambda_table=None,

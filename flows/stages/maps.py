@@ -27,6 +27,7 @@ from prefect import flow  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from engine_model import knock  # noqa: E402
+from engine_model.bench.measured import validate_bench  # noqa: E402
 from engine_model.calibrated import CalibratedEngine  # noqa: E402
 from engine_model.io import write_csv, write_json  # noqa: E402
 from engine_model.tables import (EcuGrid, LambdaTable, MapSettings, build_maps, load_model,  # noqa: E402
@@ -60,9 +61,11 @@ def batch_label(model_file, grid: EcuGrid, lam: LambdaTable | None, st: MapSetti
 
 
 def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None = None,
-               st: MapSettings | None = None, model_file=None) -> dict:
+               st: MapSettings | None = None, model_file=None, knock_evidence=None) -> dict:
     """Build the tables with ``model`` (read from ``model_file``) on ``grid`` and write them into
-    ``ctx.work/maps``; returns the summary."""
+    ``ctx.work/maps``; returns the summary.  ``ctx.bench`` (if any) pins the cells the bench ran clean at
+    MBT; ``knock_evidence`` (default ``ctx.work/calibration/knock_evidence.parquet``) feeds the report
+    against the bench."""
     t0 = time.perf_counter()
     eng = ctx.engine.spec
     st = MapSettings() if st is None else st
@@ -70,7 +73,7 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     res = build_maps(eng, model, grid=grid, lambda_table=lam, evaluate=ctx.evaluator(label), settings=st,
                      bench=ctx.bench)
     paths = write_maps(res, ctx.work / "maps", spec=eng)
-    consistency = _bench_consistency(ctx, res, eng, paths)
+    consistency = _bench_consistency(ctx, res, eng, paths, knock_evidence)
     summary = {"kind": "maps", "package_version": package_version(), "spec_hash": eng.spec_hash(),
                "model": res.model_name, "grid": list(grid.shape), "step_deg": ctx.settings.step_deg,
                "settings": dataclasses.asdict(st),   # what a rebuild (mbc maps --run) starts from
@@ -83,9 +86,9 @@ def build_into(ctx: StageContext, model, grid: EcuGrid, lam: LambdaTable | None 
     return summary
 
 
-def _bench_consistency(ctx: StageContext, res, eng, paths: dict) -> dict | None:
+def _bench_consistency(ctx: StageContext, res, eng, paths: dict, knock_evidence=None) -> dict | None:
     """``maps/bench_consistency.csv`` and ``.png`` from the calibration's knock evidence (None without it)."""
-    ev_file = ctx.work / "calibration" / "knock_evidence.parquet"
+    ev_file = Path(knock_evidence) if knock_evidence else ctx.work / "calibration" / "knock_evidence.parquet"
     if not ev_file.is_file():
         return None
     evidence = pd.read_parquet(ev_file)
@@ -127,13 +130,18 @@ def _inputs(model: str, spec: str | None, throttle: str | None, speed: str | Non
 def maps_flow(model: str, out: str, spec: str | None = None, throttle: str | None = None, speed: str | None = None,
               lambda_table: str | None = None, settings: dict | None = None, step_deg: float = 0.5,
               workers: int = DEFAULT_WORKERS, dask_address: str | None = None, progress: bool = True,
-              grid: str | None = None) -> dict:
-    """ECU tables from the combustion model file ``model`` into ``out``/maps/ (sweeps in ``out``/sweeps/)."""
+              grid: str | None = None, bench: str | None = None, knock_evidence: str | None = None) -> dict:
+    """ECU tables from the combustion model file ``model`` into ``out``/maps/ (sweeps in ``out``/sweeps/).
+
+    ``bench``: bench data (a run's ``bench.parquet``) whose clean MBT points pin their cells;
+    ``knock_evidence``: a calibration's ``knock_evidence.parquet`` for the report against the bench."""
     engine, mdl, grid, lam, st = _inputs(model, spec, throttle, speed, lambda_table, settings, grid)
+    meas = validate_bench(pd.read_parquet(bench), source=str(bench)) if bench else None
     with shared_cluster(workers, dask_address) as addr:
         ctx = StageContext(work=Path(out), engine=engine, engine_file=spec, address=addr,
-                           settings=RunSettings(step_deg=step_deg, stages=("maps",)), progress=progress)
-        return build_into(ctx, mdl, grid, lam, st, model_file=model)
+                           settings=RunSettings(step_deg=step_deg, stages=("maps",)), progress=progress,
+                           bench=meas, bench_source=str(bench or ""))
+        return build_into(ctx, mdl, grid, lam, st, model_file=model, knock_evidence=knock_evidence)
 
 
 def run_maps(model, out, spec=None, throttle=None, speed=None, lambda_table=None, settings=None, grid=None,

@@ -66,7 +66,9 @@ def test_mbc_run_quick_pipeline_on_packaged_data(quick_run, run_copy):
     # the calibrated engine is in the run folder, with the matched values
     from engine_model.calibrated import CalibratedEngine
     eng = CalibratedEngine.load(out / "engine.toml")
-    assert eng.overrides == pytest.approx(man["calibration"]["airflow"]["parameters"])
+    knock = man["calibration"]["knock"]
+    assert eng.overrides == pytest.approx({**man["calibration"]["airflow"]["parameters"],
+                                           "knock.delay_multiplier": knock["delay_multiplier_table"]})
     assert eng.spec_hash() == man["calibrated_spec_hash"]
     # a later stage alone, on the finished run: it uses the run's engine and bench copy, and leaves the
     # other stages' outputs
