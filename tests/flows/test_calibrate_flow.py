@@ -59,7 +59,11 @@ def test_mbc_calibrate_reduced(prefect_api, tmp_path, capsys):
     # the calibrated engine is written as a spec file that reads back with the matched values
     from engine_model.calibrated import CalibratedEngine
     eng = CalibratedEngine.load(out / "engine.toml")
-    assert eng.overrides == pytest.approx(summary["airflow"]["parameters"])
+    knock = summary["knock"]      # knock calibration on the two clean WOT points: a lower bound
+    assert knock["evidence"] == "lower bound" and knock["points_knock_free"] == 2
+    assert eng.overrides == pytest.approx({**summary["airflow"]["parameters"],
+                                           "knock.delay_multiplier": knock["delay_multiplier_table"]})
+    assert (cal / "knock_evidence.parquet").is_file() and "knock calibration (lower bound" in text
     for key, val in summary["airflow"]["parameters"].items():
         section, field = key.split(".")
         assert getattr(getattr(eng.spec, section), field) == val

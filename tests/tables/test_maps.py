@@ -237,7 +237,7 @@ def _fine_sweep(spec, model, cell, lo, hi):
 def test_mbt_and_knock_border_agree_with_a_brute_force_sweep(built):
     """MBT within 1 deg of a 1-deg brute-force sweep (parabola fitted +-6 deg around its best point).
 
-    Knock border within 1 deg of the brute force's last knock-safe spark.
+    Knock border within 1 deg of the brute force's last spark whose fastest cycles stay knock-free.
     """
     spec, model, _rec, res = built
     c = res.cells
@@ -254,12 +254,17 @@ def test_mbt_and_knock_border_agree_with_a_brute_force_sweep(built):
     a, b, _ = np.polyfit(sp[near], tq[near], 2)
     assert abs(cell["spark_mbt_deg_btdc"] - (-b / (2 * a))) <= 1.0
     cell = knock_cells.iloc[0]
-    fine = _fine_sweep(spec, model, cell, cell["spark_raw_deg_btdc"] - 5, cell["spark_raw_deg_btdc"] + 5)
-    safe = fine.loc[fine["knock_index"] < lim, "spark_deg_btdc"]
+    adv = res.settings.cycle_advance                  # knock-free = the fastest cycles' index (spark + adv) < lim
+    assert adv == spec.knock.cycle_ca50_advance_deg and float(adv).is_integer()
+    fine = _fine_sweep(spec, model, cell, cell["spark_raw_deg_btdc"] - 5, cell["spark_raw_deg_btdc"] + 5 + adv)
+    k_at = dict(zip(fine["spark_deg_btdc"].round(6), fine["knock_index"]))
+    fine = fine[fine["spark_deg_btdc"] <= fine["spark_deg_btdc"].max() - adv + 1e-9].copy()
+    fine["knock_cycle"] = [k_at[round(s + adv, 6)] for s in fine["spark_deg_btdc"]]   # 1-deg sweep: exact
+    safe = fine.loc[fine["knock_cycle"] < lim, "spark_deg_btdc"]
     assert len(safe) and len(safe) < len(fine)                       # the sweep crosses the border
     assert cell["spark_raw_deg_btdc"] == pytest.approx(safe.max(), abs=1.0)
     # torque there is the best torque the brute force finds below the knock border (within 0.5 %)
-    best = fine.loc[fine["knock_index"] < lim, "brake_torque_nm"].max()
+    best = fine.loc[fine["knock_cycle"] < lim, "brake_torque_nm"].max()
     assert cell["brake_torque_nm"] >= best * 0.995
 
 
