@@ -75,8 +75,7 @@ def prepare(spec: EngineSpec, truth: KnockTruth = KnockTruth(), speeds=range(300
     res = simulate_with_truth(spec, plan, truth, solver)
     ahead = plan.assign(spark_deg_btdc=plan["spark_deg_btdc"] + adv,
                         point_id=plan["point_id"].astype(str) + "+adv")
-    ahead = _with_burn(ahead)      # the model sees the burn identified at the bench's spark
-    ahead["bdur_10_90_deg"], ahead["wiebe_m"] = plan["bdur_10_90_deg"].to_numpy(), plan["wiebe_m"].to_numpy()
+    # (ahead keeps the plan's burns: the model sees the burn identified at the bench's spark)
     res_a = simulate_with_truth(spec, ahead, truth, solver)
     cells = [(float(n), float(t)) for t in throttles for n in speeds]
     rows = [{"point_id": f"g{int(n)}-{int(t)}-{s:g}", "cell": i, "speed_rpm": n, "throttle_pct": t,
