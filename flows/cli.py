@@ -199,23 +199,50 @@ def cmd_gap_benchmark(args) -> int:
 
 
 def cmd_gap_plan(args) -> int:
-    """Propose the bench points that tell the library's effects apart (base model only, in-process)."""
+    """Propose the bench points that tell the library's effects apart (base model only, in-process).
+
+    Writes the plan CSV and, next to it, ``<plan>.coverage.md``: what the plan covers over speed and throttle
+    and what it misses (:func:`engine_model.gap.coverage.summary_markdown`).
+    """
+    from pathlib import Path
+
     from engine_model.gap.bench_procedure import BENCH_SOLVER
     from engine_model import load_spec
+    from engine_model.gap.coverage import min_points_to_cover, summary_markdown
     from engine_model.gap.design import discrimination_plan
-    from engine_model.io import write_csv
+    from engine_model.io import write_csv, write_text
     from engine_model.sim.simulate import simulate
 
     if args.points < 2:
         raise ValueError(f"--points {args.points}: need at least 2 bench points")
+    if not args.max_speed_gap_rpm > 0:
+        raise ValueError(f"--max-speed-gap-rpm {args.max_speed_gap_rpm:g}: must be > 0")
+    if not args.speed_min < args.speed_max:
+        raise ValueError(f"--speed-min {args.speed_min:g} must be below --speed-max {args.speed_max:g}")
+    need = min_points_to_cover(args.speed_min, args.speed_max, args.max_speed_gap_rpm)
+    if args.points < need:
+        raise ValueError(f"--points {args.points}: covering {args.speed_min:g}-{args.speed_max:g} rpm with speed gaps "
+                         f"<= {args.max_speed_gap_rpm:g} rpm needs at least {need} points; ask for --points {need} "
+                         "or more, or widen --max-speed-gap-rpm")
     eng = load_spec(args.spec)
     plan, info = discrimination_plan(args.points, eng, lambda p: simulate(eng, p, BENCH_SOLVER),
-                                     n_candidates=args.candidates)
+                                     n_candidates=args.candidates, speed_rpm=(args.speed_min, args.speed_max),
+                                     max_speed_gap_rpm=args.max_speed_gap_rpm)
     path = write_csv(plan, args.out)
+    cov, free = info["coverage"], info.get("free", {})
+    md = write_text(summary_markdown(cov, info["closest"], info["min_d2"], info["error_bound"],
+                                     free.get("error_bound")), Path(path).with_suffix(".coverage.md"))
     i, j = info["closest"]
+    a, b = cov["largest_speed_gap_at"]
     print(f"{len(plan)} points -> {path}; closest hypotheses: {i} vs {j or 'no effect'} "
-          f"(d2 = {info['min_d2']:.1f} in noise units), misnaming bound {info['error_bound']:.3f}; "
-          f"{info['simulations']} linearisation simulations + {len(info['pool']) * 5} knock checks")
+          f"(d2 = {info['min_d2']:.1f} in noise units), misnaming bound {info['error_bound']:.3f}"
+          + (f" (without the speed coverage {free['error_bound']:.3f}, largest speed gap "
+             f"{free['coverage']['largest_speed_gap_rpm']:.0f} rpm)" if free else "")
+          + f"; {info['simulations']} linearisation simulations + {len(info['pool']) * 5} knock checks")
+    print(f"coverage -> {md}: largest speed gap {cov['largest_speed_gap_rpm']:.0f} rpm ({a:.0f}-{b:.0f}), "
+          f"speed {cov['speed_covered'][0]:.0f}-{cov['speed_covered'][1]:.0f} rpm, throttle "
+          f"{cov['throttle_covered'][0]:.0f}-{cov['throttle_covered'][1]:.0f} %; single-point speed bands: "
+          + (", ".join(f"{x:.0f}-{y:.0f}" for x, y in cov["single_point_bands"]) or "none"))
     return 0
 
 
@@ -384,6 +411,11 @@ def build_parser() -> argparse.ArgumentParser:
     gpl.add_argument("--points", type=int, default=32, help="bench points (default 32)")
     gpl.add_argument("--candidates", type=int, default=160,
                      help="candidate pool size (default 160; ~22 simulations each, in-process)")
+    gpl.add_argument("--max-speed-gap-rpm", type=float, default=1000.0,
+                     help="largest gap between neighbouring planned speeds and at the range's ends [rpm] "
+                          "(default 1000, the ECU tables' speed spacing); too few --points for it is refused")
+    gpl.add_argument("--speed-min", type=float, default=5000.0, help="low end of the speed range [rpm] (default 5000)")
+    gpl.add_argument("--speed-max", type=float, default=12500.0, help="high end of the speed range [rpm] (default 12500)")
     gpl.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     gpl.set_defaults(func=cmd_gap_plan)
     return p

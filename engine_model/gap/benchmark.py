@@ -96,9 +96,9 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     """A realistic small dyno DOE of ``n`` points.
 
     ``design="discriminating"`` (default): ``n`` points chosen from a 160-point candidate pool (5000-12500 rpm,
-    spark 0-8 deg below the MBT prior, knock back-off) to maximise the smallest model-discrimination
-    distance between the library's effects (:func:`engine_model.gap.design.discrimination_plan`; base
-    model only, no bench data).
+    spark 0-8 deg below the MBT prior, knock back-off) to minimise the misnaming bound between the
+    library's effects, with no speed gap above 1000 rpm (:func:`engine_model.gap.design.discrimination_plan`;
+    base model only, no bench data).
 
     ``design="sobol"``: ``n`` Sobol' points over 6000-12500 rpm x 30-100 % throttle, spark = MBT prior minus
     0-6 deg, retarded in 4 deg steps where the model (prior burn) predicts a knock index above ``knock_target``.

@@ -29,6 +29,22 @@ min d2 = 19.7, the error-bound plan 21.4 (and a bound of 0.027 against 0.050); a
 subset of the pool has min d2 = 9.8 (blow-by vs transmission efficiency in both).  On the benchmark the
 maximin plan also claimed an effect in 3 of 5 null trials (docs/sections/gap.md).
 
+Coverage.  Left to the criterion alone the plan goes where the linearised effects differ most, the ends
+of the speed range: the 32-point plan for the default pool had 17 points at 5000-7000 rpm, 13 at
+11000-12430 rpm and none between 9049 and 10960 rpm, the band of the real WOT bench data, so an effect
+localised there was invisible to it.  The selection therefore takes a coverage constraint
+(:class:`engine_model.gap.coverage.AxisCoverage`, by default on speed, 1000 rpm): no gap between
+neighbouring planned speeds, nor between an end of the range and the nearest planned speed, wider than
+the limit.  A greedy step may only take a candidate after which the points still to choose can close
+every remaining gap (the exact fewest points needed, a one-dimensional covering), and an exchange may only
+swap in a candidate that keeps the plan covered; among covered plans the criterion still decides, so the
+coverage points land where, within their gap, the effects differ most.  Too few points for the range at
+the limit are refused with the minimum named (no automatic widening).  The candidate pool gets Sobol'
+points of its own in any half-limit speed band with fewer than two (none needed by the 160-point pool).
+Throttle coverage can be required the same way (``max_throttle_gap_pct``); by default it is reported
+(throttle range per speed band, :func:`engine_model.gap.coverage.coverage_summary`), not constrained.
+COVERAGE_FIGURES
+
 Measured limitation: the distances are linear and assume the base's misfit is white noise of the
 stated size; the 32-point plan this makes for the benchmark (13 points at 5000-6000 rpm) names 90.8 % of
 the withheld effects at realistic magnitude (Sobol' 87.1 %) but claims an effect in 25 % of the null
@@ -53,6 +69,7 @@ from engine_model.gap.residuals import UNCERTAINTY, sigma_of
 from engine_model.effects import EFFECTS, get_effect
 from engine_model.gap.bench_procedure import BENCH_SOLVER, knock_backoff
 from engine_model.gap.linear import SWEEP_BASE, BaseModel, Linearisation, linearise
+from engine_model.gap.coverage import MAX_SPEED_GAP_RPM, AxisCoverage, coverage_summary, min_points_to_cover
 
 __all__ = ["DesignProblem", "design_problem", "pair_distances", "select_discriminating", "candidate_pool",
            "discrimination_plan", "DESIGN_OUTPUTS", "CRITERIA"]
@@ -185,14 +202,43 @@ def _better(k1, k2, b1, b2, rel=1e-9) -> np.ndarray:
     return (k1 > b1 + tol1) | ((k1 >= b1 - tol1) & (k2 > b2 + rel * abs(b2) + 1e-15))
 
 
+def _check_coverage(coverage: list, n: int, chosen: list, n_points: int) -> None:
+    """Refuse, before any selection, a coverage the candidates or the number of points cannot meet."""
+    for c in coverage:
+        if c.n != n:
+            raise ValueError(f"select_discriminating: coverage {c.name} has {c.n} values, the candidates {n}")
+        if not np.isfinite(c.deficit(chosen)):
+            a, b = c.uncoverable_gap() or (c.low, c.high)
+            raise ValueError(f"select_discriminating: no candidate between {c.name} {a:g} and {b:g} "
+                             f"(a gap wider than the limit {c.max_gap:g}); add candidates there or widen the limit")
+    need = len(chosen) + sum(int(c.deficit(chosen)) for c in coverage)
+    if need > n_points:
+        axes = "; ".join(f"{c.name} {c.low:g}-{c.high:g} with gaps <= {c.max_gap:g}" for c in coverage)
+        raise ValueError(f"select_discriminating: covering {axes} needs at least {need} points of these "
+                         f"candidates, n_points = {n_points}; ask for {need} points or widen the limit")
+
+
 def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[int] | None = None,
-                          exchange_passes: int = 3, criterion: str = "error") -> tuple[np.ndarray, dict]:
+                          exchange_passes: int = 3, criterion: str = "error",
+                          coverage: Sequence[AxisCoverage] = ()) -> tuple[np.ndarray, dict]:
     """Indices of ``n_points`` distinct candidate points maximising the smallest ``d2(i | j)``.
 
     Greedy forward selection (from ``start``, default empty), then up to ``exchange_passes`` passes in which
     every chosen point is swapped for the unchosen candidate that improves the criterion most, if any.
     ``criterion`` (:data:`CRITERIA`): ``"maximin"`` maximises the smallest ``d2`` (ties broken by the smaller
     sum of ``1/d2``); ``"error"`` minimises the sum over pairs of ``Phi(-sqrt(d2)/2)``.
+
+    ``coverage`` (:class:`engine_model.gap.coverage.AxisCoverage`, one per axis, values per candidate):
+    a greedy step may only take a candidate after which the remaining steps can still close every gap
+    wider than the axis' limit (the sum of the axes' :meth:`~AxisCoverage.deficit` at most the points left),
+    and an exchange may only make a swap after which every axis is still covered.  So the plan returned
+    covers every axis, and among such plans the criterion still chooses.
+
+    Raises
+    ------
+    ValueError
+        ``n_points`` too few to cover the axes with these candidates (the message names the minimum), or
+        a stretch of an axis no candidate can bridge.
 
     Returns
     -------
@@ -207,9 +253,15 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
     chosen = [] if start is None else [int(i) for i in start]
     if len(set(chosen)) != len(chosen) or any(not 0 <= i < prob.n for i in chosen) or len(chosen) > n_points:
         raise ValueError(f"select_discriminating: start {chosen} must be distinct candidate indices, at most n_points")
+    coverage = list(coverage)
+    _check_coverage(coverage, prob.n, chosen, n_points)
+    deficit = lambda sel: sum(c.deficit(sel) for c in coverage)
     gsum = prob.gram[chosen].sum(axis=0) if chosen else np.zeros(prob.gram.shape[1:])
     while len(chosen) < n_points:
         free = np.setdiff1d(np.arange(prob.n), chosen)
+        left = n_points - len(chosen) - 1            # points still to choose after this one
+        if coverage and deficit(chosen) > left:      # tight: only a candidate that closes a gap will do
+            free = free[np.array([deficit(chosen + [int(k)]) <= left for k in free])]
         k1, k2 = _score(prob, gsum[None] + prob.gram[free], criterion)
         order = np.lexsort((-k2, -k1))          # largest first key, then largest second key
         k = int(free[order[0]])
@@ -224,6 +276,9 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
             g_wo = gsum - prob.gram[chosen[pos]]
             k1, k2 = _score(prob, g_wo[None] + prob.gram[free], criterion)
             good = _better(k1, k2, c1[0], c2[0])
+            rest = chosen[:pos] + chosen[pos + 1:]
+            if coverage and good.any() and not all(c.holds(rest) for c in coverage):
+                good &= np.array([all(c.holds(rest + [int(k)]) for c in coverage) for k in free])
             if good.any():
                 cand = np.flatnonzero(good)
                 best = cand[np.lexsort((-k2[cand], -k1[cand]))[0]]
@@ -246,14 +301,29 @@ def select_discriminating(prob: DesignProblem, n_points: int, start: Sequence[in
 def candidate_pool(n: int = 160, seed: int = 0, spec: EngineSpec | None = None, evaluate: Callable | None = None,
                    speed_rpm: tuple[float, float] = (5000.0, 12500.0), throttle_pct: tuple[float, float] = (30.0, 100.0),
                    spark_below_mbt: tuple[float, float] = (0.0, 8.0), knock_target: float = 0.85,
-                   retards: Sequence[float] = (0.0, 4.0, 8.0, 12.0, 16.0)) -> pd.DataFrame:
+                   retards: Sequence[float] = (0.0, 4.0, 8.0, 12.0, 16.0),
+                   max_speed_gap_rpm: float | None = MAX_SPEED_GAP_RPM, per_band: int = 2) -> pd.DataFrame:
     """Candidate bench points: Sobol' over speed x throttle, spark ``spark_below_mbt`` below the MBT prior,
-    retarded in 4 deg steps where the model (prior burn) predicts knock (as :func:`benchmark_plan`)."""
+    retarded in 4 deg steps where the model (prior burn) predicts knock (as :func:`benchmark_plan`).
+
+    With ``max_speed_gap_rpm`` [rpm], the speed range is cut into bands of at most half that width and every
+    band holding fewer than ``per_band`` Sobol' points gets Sobol' points of its own (speed within the band,
+    throttle over ``throttle_pct``), so a plan drawn from the pool can cover the range at that limit even if
+    a point per band fails to converge.  The 160-point default pool needs none (>= 8 per 500 rpm band).
+    """
 
     spec = default_spec() if spec is None else spec
     if evaluate is None:
         raise ValueError("candidate_pool: an evaluate(plan) callable is needed for the knock back-off")
     pool = doe.sobol(n, bounds={"speed_rpm": speed_rpm, "throttle_pct": throttle_pct}, seed=seed)
+    if max_speed_gap_rpm is not None:
+        nb = 2 * int(np.ceil((speed_rpm[1] - speed_rpm[0]) / max_speed_gap_rpm))
+        edges = np.linspace(speed_rpm[0], speed_rpm[1], nb + 1)
+        have = np.histogram(pool["speed_rpm"].to_numpy(float), edges)[0]
+        extra = [doe.sobol(per_band - int(h), bounds={"speed_rpm": (edges[b], edges[b + 1]),
+                                                      "throttle_pct": throttle_pct}, seed=seed + 1 + b)
+                 for b, h in enumerate(have) if h < per_band]
+        pool = pd.concat([pool] + extra, ignore_index=True)
     rng = np.random.default_rng(seed + 17)
     spark0 = pool["spark_deg_btdc"].to_numpy(float) - rng.uniform(*spark_below_mbt, len(pool))
     chosen = knock_backoff(pool.assign(spark_deg_btdc=spark0), spark0, evaluate, knock_target, retards)
@@ -269,7 +339,12 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
                         effects: Sequence[str] | None = None, base: BaseModel = BaseModel(params=SWEEP_BASE),
                         candidate_lin: Linearisation | None = None,
                         outputs: Sequence[str] = DESIGN_OUTPUTS, criterion: str = "error",
-                        burn_scatter_deg: float = BURN_SCATTER_DEG) -> tuple[pd.DataFrame, dict]:
+                        burn_scatter_deg: float = BURN_SCATTER_DEG,
+                        speed_rpm: tuple[float, float] | None = None,
+                        max_speed_gap_rpm: float | None = MAX_SPEED_GAP_RPM,
+                        throttle_pct: tuple[float, float] | None = None,
+                        max_throttle_gap_pct: float | None = None,
+                        compare_free: bool = True) -> tuple[pd.DataFrame, dict]:
     """Propose ``n_points`` bench points that tell the library's effects apart (before any bench run).
 
     Parameters
@@ -280,7 +355,8 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
         Simulator (``simulate`` contract); one knock check of the pool and one linearisation batch
         (``len(pool) * (1 + base + simulated effect params)`` simulations).
     candidates : DataFrame, optional
-        Candidate pool (plan columns); default :func:`candidate_pool` (``n_candidates`` points).
+        Candidate pool (plan columns); default :func:`candidate_pool` (``n_candidates`` points over
+        ``speed_rpm`` x ``throttle_pct``).
     effects : sequence of str, optional
         Hypotheses to separate (default: the whole library).
     base : BaseModel
@@ -292,20 +368,58 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
         See :func:`select_discriminating`.
     burn_scatter_deg : float
         See :func:`design_problem` and :data:`engine_model.gap.covariance.BURN_SCATTER_DEG`.
+    speed_rpm : (float, float), optional
+        Speed range [rpm] of the pool and of the coverage; default 5000-12500 rpm for a pool made here,
+        the candidates' own range for ``candidates``.
+    max_speed_gap_rpm : float or None
+        Largest gap [rpm] between neighbouring planned speeds, and between the range's ends and the
+        nearest planned speed (:data:`engine_model.gap.coverage.MAX_SPEED_GAP_RPM`); None: no constraint.
+    throttle_pct : (float, float), optional
+        Throttle range [%] of the pool and of the throttle coverage; default 30-100 % / the candidates' range.
+    max_throttle_gap_pct : float or None
+        Largest throttle gap [%-points] over the whole plan; None (default): reported, not constrained.
+    compare_free : bool
+        Also select without the coverage constraints, to report what the coverage costs in criterion
+        (``info['free']``); a second selection on the same linearisation, no simulations.
+
+    Raises
+    ------
+    ValueError
+        ``n_points`` below what the coverage needs (:func:`engine_model.gap.coverage.min_points_to_cover`
+        before any simulation; the pool's own minimum after the linearisation), naming the minimum.
 
     Returns
     -------
     plan : DataFrame
         The chosen rows of the pool (``design = 'discriminating'``).
     info : dict
-        ``min_d2`` and ``closest`` pair, ``pairs``, the pool, its linearisation and its simulations.
+        ``min_d2`` and ``closest`` pair, ``pairs``, ``error_bound``, ``coverage``
+        (:func:`engine_model.gap.coverage.coverage_summary`: largest speed gap, speed and throttle covered,
+        throttle range per speed band, single-point bands), ``free`` (``min_d2``, ``error_bound``,
+        ``closest``, ``coverage`` of the unconstrained plan, if ``compare_free``), the pool, its
+        linearisation and its simulations.
     """
     from engine_model.sim.simulate import simulate
 
     spec = default_spec() if spec is None else spec
+    if candidates is not None:
+        sp0, th0 = candidates["speed_rpm"].astype(float), candidates["throttle_pct"].astype(float)
+        speed_rpm = (float(sp0.min()), float(sp0.max())) if speed_rpm is None else speed_rpm
+        throttle_pct = (float(th0.min()), float(th0.max())) if throttle_pct is None else throttle_pct
+    speed_rpm = (5000.0, 12500.0) if speed_rpm is None else (float(speed_rpm[0]), float(speed_rpm[1]))
+    throttle_pct = (30.0, 100.0) if throttle_pct is None else (float(throttle_pct[0]), float(throttle_pct[1]))
+    axes = [(c, r, g) for c, r, g in (("speed_rpm", speed_rpm, max_speed_gap_rpm),
+                                      ("throttle_pct", throttle_pct, max_throttle_gap_pct)) if g is not None]
+    need = sum(min_points_to_cover(r[0], r[1], g) for _, r, g in axes)
+    if need > n_points:
+        raise ValueError(f"discrimination_plan: {n_points} points cannot cover " + "; ".join(
+            f"{c} {r[0]:g}-{r[1]:g} with gaps <= {g:g}" for c, r, g in axes) + f": that needs at least {need} "
+            "points; ask for more points, a narrower range or a wider gap limit")
     ev = evaluate or (lambda p: simulate(spec, p, BENCH_SOLVER))
     names = list(EFFECTS) if effects is None else [get_effect(e).name for e in effects]
-    pool = candidate_pool(n_candidates, seed, spec, ev) if candidates is None else candidates.reset_index(drop=True)
+    pool = (candidate_pool(n_candidates, seed, spec, ev, speed_rpm=speed_rpm, throttle_pct=throttle_pct,
+                           max_speed_gap_rpm=max_speed_gap_rpm)
+            if candidates is None else candidates.reset_index(drop=True))
     lin = candidate_lin if candidate_lin is not None else linearise(pool, ev, base, effects=names, spec=spec)
     if len(lin.points) != len(pool):
         raise ValueError(f"discrimination_plan: candidate_lin has {len(lin.points)} points, the pool {len(pool)}")
@@ -314,8 +428,15 @@ def discrimination_plan(n_points: int = 32, spec: EngineSpec | None = None, eval
         raise ValueError(f"discrimination_plan: only {ok.size} of {len(pool)} candidates converged; need {n_points}")
     prob = design_problem(lin.select(list(lin.points["point_id"].iloc[ok])), outputs, names,
                           burn_scatter_deg=burn_scatter_deg)
-    idx, info = select_discriminating(prob, n_points, criterion=criterion)
+    cover = [AxisCoverage(c, pool[c].to_numpy(float)[ok], r[0], r[1], g) for c, r, g in axes]
+    idx, info = select_discriminating(prob, n_points, criterion=criterion, coverage=cover)
     plan = pool.iloc[ok[idx]].reset_index(drop=True)
     plan["design"] = "discriminating"
+    gap_limit = MAX_SPEED_GAP_RPM if max_speed_gap_rpm is None else max_speed_gap_rpm
+    info["coverage"] = coverage_summary(plan, speed_rpm, gap_limit, throttle_pct)
+    if compare_free and cover:
+        fidx, free = select_discriminating(prob, n_points, criterion=criterion)
+        info["free"] = {k: free[k] for k in ("min_d2", "error_bound", "closest")}
+        info["free"]["coverage"] = coverage_summary(pool.iloc[ok[fidx]], speed_rpm, gap_limit, throttle_pct)
     info.update({"pool": pool, "linearisation": lin, "simulations": lin.n_simulations})
     return plan, info

@@ -41,3 +41,24 @@ def test_gap_plan_options_and_bad_size(tmp_path, capsys):
     assert main(["gap-plan", "--out", str(tmp_path / "p.csv"), "--points", "1"]) == 2
     assert "--points 1" in capsys.readouterr().err
     assert not (tmp_path / "p.csv").exists()
+
+
+def test_gap_plan_coverage_options_and_too_few_points(tmp_path, capsys):
+    """`--max-speed-gap-rpm` and the speed range parse (defaults 1000, 5000-12500 rpm); a plan too small to
+    cover the range at the limit is refused before any simulation, naming the minimum."""
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-plan", "--out", "p.csv"])
+    assert (args.max_speed_gap_rpm, args.speed_min, args.speed_max) == (1000.0, 5000.0, 12500.0)
+    args = build_parser().parse_args(["gap-plan", "--out", "p.csv", "--max-speed-gap-rpm", "500",
+                                      "--speed-min", "8000", "--speed-max", "11000"])
+    assert (args.max_speed_gap_rpm, args.speed_min, args.speed_max) == (500.0, 8000.0, 11000.0)
+    out = tmp_path / "p.csv"
+    assert main(["gap-plan", "--out", str(out), "--points", "6"]) == 2
+    err = capsys.readouterr().err
+    assert "needs at least 7 points" in err and "--max-speed-gap-rpm" in err
+    assert main(["gap-plan", "--out", str(out), "--speed-min", "9000", "--speed-max", "8000"]) == 2
+    assert "--speed-min" in capsys.readouterr().err
+    assert main(["gap-plan", "--out", str(out), "--max-speed-gap-rpm", "0"]) == 2
+    assert "--max-speed-gap-rpm 0" in capsys.readouterr().err
+    assert not out.exists()

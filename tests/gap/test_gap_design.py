@@ -256,11 +256,17 @@ def test_discrimination_plan_from_a_given_linearisation():
                         ("transmission_efficiency", "eta"), ("blowby", "fraction_at_6000")],
                         steps=np.array([2.0, -0.04, 0.02]), jac=jac, ok=ok, status=[""] * n, theta={},
                         base=BaseModel(params=("bdur_offset_deg",)))
-    plan, info = discrimination_plan(5, candidates=pool, candidate_lin=lin,
+    # 5 points cover the pool's 6000-12000 rpm at 1500 rpm (at 1000 rpm these candidates need 6)
+    plan, info = discrimination_plan(5, candidates=pool, candidate_lin=lin, max_speed_gap_rpm=1500.0,
                                      effects=["transmission_efficiency", "blowby"], evaluate=lambda p: None)
     assert len(plan) == 5 and "c4" in set(plan["point_id"]) and "c15" not in set(plan["point_id"])
     assert (plan["design"] == "discriminating").all()
     assert info["closest"][0] in ("transmission_efficiency", "blowby")
+    assert info["coverage"]["speed_range"] == (6000.0, 12000.0) and info["coverage"]["largest_speed_gap_rpm"] <= 1500.0
+    assert info["free"]["error_bound"] <= info["error_bound"] + 1e-12
+    with pytest.raises(ValueError, match="needs at least 6 points of these candidates"):
+        discrimination_plan(5, candidates=pool, candidate_lin=lin, max_speed_gap_rpm=1000.0,
+                            effects=["transmission_efficiency", "blowby"], evaluate=lambda p: None)
 
 
 def test_burn_scatter_discounts_contrasts_a_burn_deviation_can_mimic():
