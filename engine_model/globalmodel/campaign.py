@@ -38,10 +38,15 @@ from engine_model.sim.prepare import SolverSettings
 from engine_model.spec import EngineSpec
 
 __all__ = ["CampaignSettings", "CampaignResult", "run_campaign", "identification_error", "holdout_error",
-           "MIN_IDENTIFIED"]
+           "MIN_IDENTIFIED", "measure_with_resweeps", "MAX_RESWEEPS"]
 
 #: Fewest identified operating points a global model is fitted on (one spark sweep each).
 MIN_IDENTIFIED = 6
+
+#: Retarded repeats of a sweep that knocked before it had three runnable sparks (each moves the whole sweep
+#: later by its span plus one step, so its most advanced spark sits a step behind the most retarded one that
+#: knocked).  Two repeats reach 50 deg behind the MBT prior with the default offsets.
+MAX_RESWEEPS = 2
 
 
 @dataclass(frozen=True)
@@ -109,9 +114,11 @@ class CampaignResult:
     def lines(self, settings: CampaignSettings) -> list[str]:
         """A short account in words (report and console)."""
         meas, ide, held = self.measured, self.identification_error, self.holdout_error
+        n_re = int(self.plan["op_id"].nunique() - len(self.operating_points)) if "op_id" in self.plan else 0
+        again = f" (with {n_re} sweep(s) repeated retarded after knocking)" if n_re else ""
         out = [f"Virtual bench: {len(self.operating_points)} operating points (D-optimal over throttle x speed from "
                f"screened candidates, seed {settings.doe_seed}) x spark offsets {list(settings.spark_offsets)} deg = "
-               f"{len(meas)} bench points; status "
+               f"{len(meas)} bench points{again}; status "
                + ", ".join(f"{k} {n}" for k, n in meas["status"].value_counts().items()) + ".",
                f"Joint spark-sweep identification at {ide['points']} of {ide['of']} operating points against the "
                f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
@@ -188,6 +195,67 @@ def holdout_error(model, law: BurnLaw, points: pd.DataFrame) -> dict:
             "m_rmse": float(np.sqrt(np.mean((pred["wiebe_m"] - tru["wiebe_m"]) ** 2)))}
 
 
+def measure_with_resweeps(bench, plan: pd.DataFrame, evaluate: Callable,
+                          max_resweeps: int = MAX_RESWEEPS) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Run spark sweeps on ``bench``; a sweep that knocked before three sparks ran is repeated retarded.
+
+    The MBT prior the sweeps are centred on is a population guess; where the engine burns faster than it
+    assumes (low speed) the whole sweep can sit past MBT and knock.  An operator then moves the sweep later
+    rather than give up the operating point.  Here: an ``op_id`` with fewer than three 'ok' rows and at least
+    one knock abort is re-run as a new sweep ``<op_id>r<k>`` (point ids ``<op_id>r<k>-s<j>``) with every
+    spark moved later by the sweep's span plus its smallest step; at most ``max_resweeps`` times.  The
+    knocking sweep stays in the result (its rows are measurements: nothing is dropped); identification sees
+    the two as separate sweeps, so an over-advanced point that happened to run past the knocking ones never
+    sits inside the retarded sweep's torque curve.
+
+    Parameters
+    ----------
+    bench : VirtualBench
+        Anything with ``measure(plan, evaluate)``.
+    plan : DataFrame
+        :func:`engine_model.calibration.sweeps.sweep_plan` output (``op_id``, ``point_id``, ``spark_deg_btdc``,
+        ``spark_offset_deg``, ``run_order``).
+    evaluate : callable
+
+    Returns
+    -------
+    plan_run, measured : DataFrame
+        The plan as run (original sweeps then the repeats, ``resweep`` = 0, 1, ...) and the bench rows in
+        the same order.
+    """
+    run = plan.reset_index(drop=True).copy()
+    run["resweep"] = 0
+    meas = bench.measure(run, evaluate=evaluate).reset_index(drop=True)
+    todo = run
+    for k in range(1, max_resweeps + 1):
+        st = meas.loc[meas["op_id"].isin(todo["op_id"])]
+        n_ok = st["status"].eq("ok").groupby(st["op_id"]).sum()
+        n_kn = st["status"].eq("knock_abort").groupby(st["op_id"]).sum()
+        again = [o for o in todo["op_id"].unique() if n_ok.get(o, 0) < 3 and n_kn.get(o, 0) > 0]
+        if not again:
+            break
+        rows = []
+        for oid in again:
+            g = todo[todo["op_id"] == oid].sort_values("spark_deg_btdc")
+            sp = g["spark_deg_btdc"].to_numpy(float)
+            shift = float(sp[-1] - sp[0]) + float(np.min(np.diff(sp)))
+            base = oid.rsplit("r", 1)[0] if k > 1 else oid
+            new = g.copy()
+            new["op_id"] = f"{base}r{k}"
+            new["point_id"] = [f"{base}r{k}-s{j}" for j in range(len(new))]
+            new["spark_deg_btdc"] = sp - shift
+            if "spark_offset_deg" in new.columns:
+                new["spark_offset_deg"] = new["spark_offset_deg"].to_numpy(float) - shift
+            new["resweep"] = k
+            rows.append(new)
+        todo = pd.concat(rows, ignore_index=True)
+        todo["run_order"] = np.arange(len(run) + 1, len(run) + len(todo) + 1)
+        redo = bench.measure(todo, evaluate=evaluate).reset_index(drop=True)
+        run = pd.concat([run, todo], ignore_index=True)
+        meas = pd.concat([meas, redo], ignore_index=True)
+    return run, meas
+
+
 def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
                  make_evaluate: Callable[[str, SolverSettings], Callable] | None = None,
                  law: BurnLaw | None = None) -> CampaignResult:
@@ -229,8 +297,7 @@ def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
 
     ops = choose_operating_points(st.doe_points, feasible=feasible, seed=st.doe_seed,
                                   bounds=dict(st.doe_bounds) if st.doe_bounds else None)
-    plan = sweep_plan(ops, offsets=st.spark_offsets)
-    meas = bench.measure(plan, evaluate=make("vbench", full))
+    plan, meas = measure_with_resweeps(bench, sweep_plan(ops, offsets=st.spark_offsets), make("vbench", full))
     ok = meas[meas["status"] == "ok"].reset_index(drop=True)
     if len(ok) < MIN_IDENTIFIED:
         raise RuntimeError(f"virtual bench: only {len(ok)} of {len(meas)} DOE points could be run "
