@@ -31,8 +31,8 @@ maximin plan also claimed an effect in 3 of 5 null trials (docs/sections/gap.md)
 
 Coverage.  Left to the criterion alone the plan goes where the linearised effects differ most, the ends
 of the speed range: the 32-point plan for the default pool had 16 points at 5000-7000 rpm, 9 above
-11000 rpm and none between 8369 and 9978 rpm (an earlier build's plan: none between 9049 and 10960 rpm),
-inside the band of the real WOT bench data (8000-11000 rpm), so an effect localised there was invisible.  The selection therefore takes a coverage constraint
+11000 rpm and none between 8369 and 9978 rpm, inside the band of the real WOT bench data (8000-11000
+rpm), so an effect localised there was invisible.  The selection therefore takes a coverage constraint
 (:class:`engine_model.gap.coverage.AxisCoverage`, by default on speed, 1000 rpm): no gap between
 neighbouring planned speeds, nor between an end of the range and the nearest planned speed, wider than
 the limit.  A greedy step may only take a candidate after which the points still to choose can close
