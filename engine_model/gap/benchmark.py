@@ -278,6 +278,7 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
             rank_row = d.ranking[d.ranking["effect"] == d.best].iloc[0] if d.best else None
             rows.append({"effect_withheld": c.effect, "magnitude": c.magnitude, "seed": s,
                          "effect_named": named, "top1_correct": bool(top1), "top3_correct": bool(top3),
+                         "category": d.category,
                          "gap_before": round(d.gap_before, 4), "gap_after": round(d.gap_after, 4),
                          "gap_reduction_pct": round(d.gap_reduction_pct, 2),
                          "best_candidate": d.best, "top3": ",".join(top), "confidence": round(d.confidence, 3),
@@ -312,7 +313,7 @@ def _verify(plans, lins, truth, diags, names, seed, ev, spec) -> list[dict]:
     jobs = []
     for e in names:
         d = diags.get((e, 1.0, seed))
-        if d is None or d.named is None:
+        if d is None or d.named is None or d.named not in EFFECTS:      # a sensor fault needs no re-simulation
             continue
         plan, lin = plans[(e, 1.0)], lins[(e, 1.0)]
         row = d.ranking[d.ranking["effect"] == d.named].iloc[0]

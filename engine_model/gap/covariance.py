@@ -37,7 +37,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["BURN_SCATTER_DEG", "MODEL_ERROR", "MODEL_ERROR_REMAINDER", "ErrorModel", "ERROR_MODELS",
-           "DEFAULT_ERROR_MODEL", "get_error_model", "burn_whitener", "whiten_blocks", "whiten_observations"]
+           "DEFAULT_ERROR_MODEL", "get_error_model", "burn_whitener", "whiten_blocks", "whiten_observations",
+           "null_base_residuals"]
 
 #: Diagonal structural uncertainty of the base model (1 sigma), added in quadrature to the measurement
 #: uncertainty: what a smooth global combustion law cannot follow of a real engine's point-to-point
@@ -217,3 +218,39 @@ def get_error_model(model: "str | ErrorModel") -> ErrorModel:
     if model not in ERROR_MODELS:
         raise ValueError(f"error model {model!r} unknown; valid: {sorted(ERROR_MODELS)}")
     return ERROR_MODELS[model]
+
+
+def null_base_residuals(prob, a_sig: np.ndarray, u: np.ndarray | None, tau: float, n_points: int, n_draws: int,
+                        seed: int) -> np.ndarray:
+    """Base-fit residuals of pure-noise data sets on a diagnosis problem, in diagonal sigma units.
+
+    Noise is drawn with the error model's covariance (unit diagonal plus ``tau^2 u u^T`` per point when
+    ``tau > 0``), whitened as the diagnosis whitens, the base columns are refitted (with the prior
+    pseudo-observations, which get their own unit noise) and the residual is mapped back to sigma units.
+
+    Parameters
+    ----------
+    prob : FitProblem
+        The diagnosis problem (whitened; rows with ``point < 0`` are prior pseudo-observations, last).
+    a_sig : (n_measured_rows, p)
+        The measured rows' columns before whitening.
+    u, tau
+        Burn direction per point and output (or None) and the burn scatter [deg].
+
+    Returns
+    -------
+    (n_measured_rows, n_draws)
+    """
+    real = prob.point >= 0
+    pr, orr = prob.point[real], prob.output[real]
+    nb = prob.base_cols
+    rng = np.random.default_rng(seed)
+    e = rng.standard_normal((pr.size, n_draws))
+    ew = e
+    if tau > 0 and u is not None:
+        g = rng.standard_normal((n_points, n_draws))
+        e = e + tau * u[pr, orr][:, None] * g[pr]
+        ew = whiten_observations(e, pr, orr, u, tau)
+    ew = np.vstack([ew, rng.standard_normal((prob.r.size - pr.size, n_draws))])
+    coef = np.linalg.lstsq(prob.a[:, nb], ew, rcond=None)[0] if nb else np.zeros((0, n_draws))
+    return e - a_sig[:, nb] @ coef

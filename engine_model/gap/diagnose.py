@@ -45,17 +45,50 @@ import numpy as np
 import pandas as pd
 
 from engine_model.gap.covariance import DEFAULT_ERROR_MODEL, ErrorModel, get_error_model, whiten_observations
-from engine_model.effects import EFFECTS, get_effect
 from engine_model.gap.fitting import (FitProblem, columns_of, fit_all, heldout, make_folds, operating_point_groups)
 
 from engine_model.gap.linear import Linearisation
-from engine_model.gap.localise import coded_map, energy_chain, field_fit, shape_label
+from engine_model.gap.localise import coded_map, energy_chain, field_fit, region_table, shape_label
+from engine_model.gap.covariance import null_base_residuals
+from engine_model.gap.verdict import param_text, rivals_of_another_kind, verdict_statement
 from engine_model.gap.residuals import UNCERTAINTY, align_measured, check_bench_outputs, sigma_of
+from engine_model.gap.sensors import SENSOR_STAGE, candidate, is_sensor, sensor_channel, with_sensor_faults
 
-__all__ = ["diagnose", "GapDiagnosis", "CHAIN_STAGE", "NO_CANDIDATE", "param_text"]
+__all__ = ["diagnose", "GapDiagnosis", "CHAIN_STAGE", "NO_CANDIDATE", "param_text", "CATEGORIES",
+           "BASE_PRIOR_SD"]
 
 NO_CANDIDATE = "no candidate in the library explains it"
 
+#: Answer categories of :func:`diagnose`, in the order the rule tests them.
+#:
+#: * ``no significant gap``: the base's held-out residual is consistent with noise and no candidate beats
+#:   the noise threshold;
+#: * ``explained`` / ``sensor fault``: the best candidate (a physical effect / an offset-and-gain fault of
+#:   one measured channel) beats the noise threshold, leaves a held-out residual no larger than pure noise
+#:   leaves (99 % quantile) and none of its parameters sits at the edge of its documented range;
+#: * ``indistinguishable``: as above, but a candidate of another kind (a fault of another channel, or a
+#:   physical effect against a sensor fault) scores within the noise threshold of the best: these data
+#:   cannot say which, and the verdict names them all rather than pick one;
+#: * ``partly explained``: the best candidate beats the noise threshold but leaves more than noise, or
+#:   asks for a parameter at its range edge (a larger or another cause); it is reported, not claimed;
+#: * ``not in the library``: a gap above noise that no candidate reduces by more than noise would; the
+#:   localisation says where it is.
+#: Prior standard deviation of a sensor fault's parameters in units of their realistic size
+#: (:mod:`engine_model.gap.sensors`).
+SENSOR_PRIOR_SCALE = 1.0
+
+CATEGORIES = ("no significant gap", "explained", "sensor fault", "indistinguishable", "partly explained",
+              "not in the library")
+
+#: Prior standard deviation of the base's burn-law parameters about the DOE prior (theta = 0), used as
+#: pseudo-observations in every fit (a penalised, i.e. MAP, fit; Brynjarsdottir & O'Hagan 2014 on why a
+#: calibration without physical priors absorbs model discrepancy).  Sizes: a few times the hold-out error
+#: of the identified burn law against bench data (BDUR10-90 RMSE 2.6-3.3 deg, docs/sections/globalmodel.md)
+#: for the offset and load term; slopes such that the prior alone allows the same few degrees across the
+#: 3000-rpm half-range (speed) and a 10-deg spark excursion (spark).
+BASE_PRIOR_SD = {"bdur_offset_deg": 8.0, "bdur_speed_deg_per_krpm": 3.0, "bdur_load_deg": 8.0,
+                 "bdur_spark_deg_per_10deg": 4.0, "bdur_speed2_deg_per_krpm2": 1.0,
+                 "m_offset": 1.5, "m_speed_per_krpm": 0.5, "airflow_restrictor_cd_factor": 0.1}
 
 #: Where along the energy chain each effect acts.
 CHAIN_STAGE = {
@@ -67,32 +100,6 @@ CHAIN_STAGE = {
     "transmission_efficiency": "transmission/dyno", "transmission_speed_loss": "transmission/dyno",
 }
 
-
-
-
-
-
-
-
-
-# --------------------------------------------------------------------------- linear fits
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
-
 # --------------------------------------------------------------------------- result
 
 @dataclass
@@ -102,7 +109,13 @@ class GapDiagnosis:
     Attributes
     ----------
     named : str or None
-        The claimed effect, or None ("no candidate in the library explains it").
+        The claimed candidate (category "explained" or "sensor fault"), else None.
+    category : str
+        One of :data:`CATEGORIES`.
+    regions : DataFrame
+        Localisation: per output and operating region (speed and load band) the mean normalised residual,
+        its standard error and whether it beats the pure-noise distribution of the largest such statistic
+        on the same plan (:func:`engine_model.gap.localise.region_table`).
     statement : str
         One-paragraph plain-language verdict.
     confidence : float
@@ -156,6 +169,8 @@ class GapDiagnosis:
     best: str | None = None
     base_theta_best: dict = field(default_factory=dict)
     extra: dict = field(default_factory=dict)
+    category: str = "not in the library"
+    regions: pd.DataFrame = field(default_factory=pd.DataFrame)
 
     def top(self, k: int = 3) -> list[str]:
         return list(self.ranking.sort_values("rank")["effect"].head(k))
@@ -163,35 +178,13 @@ class GapDiagnosis:
     def summary(self) -> str:
         return self.statement
 
-
-# --------------------------------------------------------------------------- where the gap lies
-
-
-
-
-
-
-
 # --------------------------------------------------------------------------- main entry
-
-def param_text(name: str, value: float, se: float, prm) -> str:
-    """``name = value +- s.e.`` of a fitted effect parameter, flagged when the data do not determine it.
-
-    A standard error wider than the parameter's whole documented range
-    (``prm.lo`` .. ``prm.hi``) means the fitted value says nothing about the
-    effect's size (typically: the parameter is nearly collinear with the base
-    calibration), and the text says so rather than print a bare number.
-    """
-    txt = f"{name} = {value:.4g} +- {se:.2g}"
-    if not (se <= prm.hi - prm.lo):
-        txt += f" (s.e. wider than its range {prm.lo:g} .. {prm.hi:g}: not determined by these data)"
-    return txt
-
 
 def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[str] | None = None,
              uncertainty: dict | None = None, error_model: str | ErrorModel = DEFAULT_ERROR_MODEL,
              k_folds: int = 5, alpha: float = 0.05, n_noise: int = 200, seed: int = 0,
-             noise_cache: dict | None = None, source: str = "bench") -> GapDiagnosis:
+             noise_cache: dict | None = None, source: str = "bench", sensor_faults: bool = True,
+             base_prior_sd: dict | None = BASE_PRIOR_SD) -> GapDiagnosis:
     """Diagnose the gap between a bench table and the linearised model.
 
     Parameters
@@ -225,6 +218,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
         Reused between calls with the same design (the benchmark passes one).
     source : str
         Name of the bench table in messages.
+    sensor_faults : bool
+        Rank an offset-and-gain fault of every measured channel beside the effects
+        (:mod:`engine_model.gap.sensors`).
+    base_prior_sd : dict or None
+        Prior standard deviation per base parameter about the DOE prior (:data:`BASE_PRIOR_SD`); None: no
+        prior (plain least squares).
 
     Returns
     -------
@@ -242,13 +241,19 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     unc = dict(UNCERTAINTY)
     unc.update(uncertainty or {})
     em = get_error_model(error_model)
-    su = _setup(lin, measured, candidates, unc, em, k_folds, seed, source)
+    if sensor_faults:
+        usable = check_bench_outputs(measured, source)
+        lin = with_sensor_faults(lin, [c for c in lin.outputs if c in usable])
+        if candidates is not None:
+            candidates = list(candidates) + [g for g in lin.effect_names() if is_sensor(g) and g not in candidates]
+    su = _setup(lin, measured, candidates, unc, em, k_folds, seed, source, base_prior_sd)
     prob, folds, cands = su.prob, su.folds, su.cands
     key = (tuple(lin.points["point_id"].astype(str)), tuple(su.pidx), tuple(su.oidx), tuple(folds), tuple(cands),
-           k_folds, seed, n_noise, alpha, float(em.burn_scatter_deg), repr(sorted((em.model_error or {}).items())))
+           k_folds, seed, n_noise, alpha, float(em.burn_scatter_deg), repr(sorted((em.model_error or {}).items())),
+           repr(sorted((base_prior_sd or {}).items())))
     thr, q_chi2, noise_best = _noise_thresholds(prob, folds, cands, key, n_noise, alpha, seed, noise_cache)
     x0, ho0, rank = _rank_candidates(su, lin, thr)
-    nobs = prob.r.size
+    nobs = prob.n_obs
     gap_before = math.sqrt(ho0 / nobs)
     best = rank["effect"].iloc[0] if len(rank) else None
     best_ho = float(rank["heldout_chi2"].iloc[0]) if len(rank) else ho0
@@ -259,20 +264,32 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     reduction = 100.0 * (ho0 - best_ho) / excess0 if excess0 > 0 else 0.0
     reduction = float(np.clip(reduction, -999.0, 100.0))
     resid_ok = best_ho <= q_chi2
-    reduction_ok = em.min_reduction_pct is not None and reduction >= em.min_reduction_pct
-    claimed = best if best is not None and rank["heldout_improvement"].iloc[0] > thr and (reduction_ok or resid_ok) \
-        else None
+    beats = best is not None and rank["heldout_improvement"].iloc[0] > thr
+    at_edge = bool(best is not None and rank["at_range_bound"].iloc[0])
+    rivals = rivals_of_another_kind(rank, thr) if beats else []
+    claimed = best if beats and resid_ok and not at_edge and not rivals else None
+    if claimed:
+        category = "sensor fault" if is_sensor(claimed) else "explained"
+    elif beats and resid_ok and not at_edge:
+        category = "indistinguishable"
+    elif beats:
+        category = "partly explained"
+    elif ho0 <= q_chi2:
+        category = "no significant gap"
+    else:
+        category = "not in the library"
     conf = float(rank["weight"].iloc[0]) if claimed else 0.0
 
     resid, delta0, deltab, fit0 = _residual_table(su, lin, x0, best)
     fld, shape = _where(su, lin, fit0)
-    chain = energy_chain(lin, su.outputs, su.y, fit0, su.valid)
+    regions = _regions(su, lin, x0, n_noise, seed)
+    chain = _chain(su, lin, x0, claimed)
     stages = (rank.groupby("stage")["heldout_improvement"].max().sort_values(ascending=False)
               .rename("best_heldout_improvement").reset_index()) if len(rank) else pd.DataFrame()
     if len(stages):
         stages["beats_noise"] = stages["best_heldout_improvement"] > thr
-    statement = _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, q_chi2, shape, chain,
-                           stages, nobs, em.min_reduction_pct)
+    statement = verdict_statement(category, claimed, best, rank, thr, gap_before, gap_after, reduction, q_chi2, chain,
+                           stages, regions)
     return GapDiagnosis(named=claimed, statement=statement, confidence=conf, ranking=rank, residuals=resid,
                         field=fld, shape=shape, chain=chain, stages=stages, gap_before=gap_before,
                         gap_after=gap_after, gap_reduction_pct=reduction, threshold=thr, noise_chi2_q=q_chi2,
@@ -281,11 +298,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         base_theta_best={p: lin.theta[p] + deltab[j] for j, (g, p) in enumerate(lin.columns)
                                          if g == "base"},
                         n_points=int(su.point_valid.sum()), n_obs=int(nobs), excluded=su.excluded, best=best,
-                        extra={"heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise, "error_model": em.name,
+                        category=category, regions=regions,
+                        extra={"indistinguishable": ([best] + rivals) if category == "indistinguishable" else [],
+                               "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise, "error_model": em.name,
                                "noise_mean_best_improvement": noise_best, "outputs": su.outputs,
                                # for a later search over pairs of candidates (gap.pairs)
                                "problem": prob, "folds": folds, "linearisation": lin})
-
 
 @dataclass
 class _Setup:
@@ -304,15 +322,19 @@ class _Setup:
     cands: list[str]
     prob: FitProblem
     folds: np.ndarray
-
+    r_sig: np.ndarray = None     # (nobs,) measured rows' residuals in diagonal sigma units (not whitened)
+    a_sig: np.ndarray = None     # (nobs, p) their columns, step units (not whitened)
+    u: np.ndarray = None         # (n, o') burn direction of the burn-scatter covariance, or None
+    tau: float = 0.0             # burn scatter [deg]
 
 def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em: ErrorModel, k_folds: int,
-           seed: int, source: str) -> _Setup:
-    """Align the bench with the linearisation, normalise by sigma, whiten, bound the effect columns, fold."""
+           seed: int, source: str, base_prior_sd: dict | None = None) -> _Setup:
+    """Align the bench with the linearisation, normalise by sigma, whiten, bound the effect columns, add the
+    base prior's pseudo-observations, fold."""
     usable = check_bench_outputs(measured, source)
     outputs = [c for c in lin.outputs if c in usable]
     meas = align_measured(lin.points, measured, outputs)
-    cands = lin.effect_names() if candidates is None else [get_effect(c).name for c in candidates]
+    cands = lin.effect_names() if candidates is None else [candidate(c).name for c in candidates]
     missing = [c for c in cands if not lin.column_index(c)]
     if missing:
         raise ValueError(f"diagnose: candidate(s) {missing} were not linearised; linearised: {lin.effect_names()}")
@@ -335,24 +357,44 @@ def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em
     r = ((y - yref) / sig)[pidx, oidx]
     steps = lin.steps
     a_full = (lin.jac[:, oi, :] / sig[:, :, None])[pidx, oidx, :] * steps     # columns in step units
+    r_sig, a_sig, u, tau = r.copy(), a_full.copy(), None, 0.0
     lo = np.full(len(steps), -np.inf)
     hi = np.full(len(steps), np.inf)
     for j, (g, p) in enumerate(lin.columns):
         if g == "base":
             continue
-        prm = get_effect(g).param(p)
+        prm = candidate(g).param(p)
         a_, b_ = (prm.lo - prm.neutral) / steps[j], (prm.hi - prm.neutral) / steps[j]
         lo[j], hi[j] = min(a_, b_), max(a_, b_)
     if em.burn_scatter_deg > 0:
         u = _burn_direction(lin, oi, sig)
+        tau = float(em.burn_scatter_deg)
         r = whiten_observations(r, pidx, oidx, u, em.burn_scatter_deg)
         a_full = whiten_observations(a_full, pidx, oidx, u, em.burn_scatter_deg)
+    # the base prior: one pseudo-observation per base parameter, (prior mean 0 - reference) / prior sd, in
+    # the same step units; point index -1 (always fitted, never held out or counted in a gap)
+    prior = [(j, base_prior_sd[p], -lin.theta[p]) for j, (g, p) in enumerate(lin.columns)
+             if g == "base" and base_prior_sd and p in base_prior_sd]
+    # a sensor fault's size: prior sd = its realistic size (SENSOR_PRIOR_SCALE x), so a fault is not
+    # fitted far beyond what instruments do just to cancel a burn-law shift (a degenerate direction)
+    prior += [(j, SENSOR_PRIOR_SCALE * abs(candidate(g).param(p).realistic), 0.0)
+              for j, (g, p) in enumerate(lin.columns) if is_sensor(g) and g in cands]
+    if prior:
+        rows = np.zeros((len(prior), a_full.shape[1]))
+        rp = np.zeros(len(prior))
+        for i, (j, sd, mean) in enumerate(prior):
+            rows[i, j] = steps[j] / sd
+            rp[i] = mean / sd
+        r = np.concatenate([r, rp])
+        a_full = np.vstack([a_full, rows])
+        pidx = np.concatenate([pidx, np.full(len(prior), -1)])
+        oidx = np.concatenate([oidx, np.full(len(prior), -1)])
     prob = FitProblem(r=r, a=a_full, point=pidx, output=oidx, base_cols=lin.column_index("base"),
                       cand_cols={c: lin.column_index(c) for c in cands}, lo=lo, hi=hi)
     folds = make_folds(n, point_valid, k_folds, seed, operating_point_groups(lin.points))
     return _Setup(outputs=outputs, oi=oi, y=y, yref=yref, sig=sig, valid=valid, point_valid=point_valid,
-                  excluded=excluded, pidx=pidx, oidx=oidx, cands=cands, prob=prob, folds=folds)
-
+                  excluded=excluded, pidx=pidx, oidx=oidx, cands=cands, prob=prob, folds=folds, r_sig=r_sig,
+                  a_sig=a_sig, u=u, tau=tau)
 
 def _noise_thresholds(prob: FitProblem, folds: np.ndarray, cands: list[str], key: tuple, n_noise: int, alpha: float,
                       seed: int, noise_cache: dict | None) -> tuple[float, float, float]:
@@ -372,7 +414,6 @@ def _noise_thresholds(prob: FitProblem, folds: np.ndarray, cands: list[str], key
     if noise_cache is not None:
         noise_cache[key] = out
     return out
-
 
 def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.ndarray, float, pd.DataFrame]:
     """Base-only fit and every candidate fitted with the base: held-out chi2, AIC/BIC, signature match.
@@ -408,7 +449,7 @@ def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.nda
         q, _ = np.linalg.qr(ap) if ap.size else (ap, None)
         rp = res0
         match = float(np.sum((q.T @ rp) ** 2) / (rp @ rp)) if rp @ rp > 0 else 0.0
-        eff = EFFECTS[c]
+        eff = candidate(c)
         params = {}
         at_bound = []
         for jj, j in enumerate(cols):
@@ -418,7 +459,7 @@ def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.nda
             if min(abs(x[nb + jj] - prob.lo[j]), abs(x[nb + jj] - prob.hi[j])) < 1e-6 * max(1.0, abs(x[nb + jj])):
                 at_bound.append(p)
         rows.append({
-            "effect": c, "stage": CHAIN_STAGE.get(c, ""),
+            "effect": c, "stage": SENSOR_STAGE if is_sensor(c) else CHAIN_STAGE.get(c, ""),
             "params": "; ".join(param_text(p, v, s, eff.param(p)) for p, (v, s) in params.items()),
             "param_values": {p: v for p, (v, _) in params.items()},
             "heldout_chi2": ho, "heldout_improvement": ho0 - ho,
@@ -436,7 +477,6 @@ def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.nda
         rank["weight"] = w / w.sum()
         rank["beats_noise"] = rank["heldout_improvement"] > thr
     return x0, ho0, rank
-
 
 def _residual_table(su: _Setup, lin: Linearisation, x0: np.ndarray, best: str | None):
     """Residuals per point and output after the base refit on all points, and with the best candidate.
@@ -466,7 +506,6 @@ def _residual_table(su: _Setup, lin: Linearisation, x0: np.ndarray, best: str | 
                          "used": bool(su.valid[i, k])})
     return pd.DataFrame(recs), delta0, deltab, fit0
 
-
 def _where(su: _Setup, lin: Linearisation, fit0: np.ndarray) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Where the gap lies: a smooth residual field over the map per output, and the shape of the error."""
     from scipy.stats import chi2 as _chi2
@@ -495,7 +534,6 @@ def _where(su: _Setup, lin: Linearisation, fit0: np.ndarray) -> tuple[pd.DataFra
         srows.append(srow)
     return pd.DataFrame(frows), pd.DataFrame(srows)
 
-
 def _burn_direction(lin: Linearisation, oi: Sequence[int], sig: np.ndarray) -> np.ndarray:
     """Per point and output, the BDUR10-90 sensitivity in sigma units [sigma per deg CA], (n, o').
 
@@ -511,7 +549,6 @@ def _burn_direction(lin: Linearisation, oi: Sequence[int], sig: np.ndarray) -> n
     u = lin.jac[:, oi, j[0]] / sig
     return np.where(np.isfinite(u) & lin.ok[:, None], u, 0.0)
 
-
 def _expected_noise_chi2(prob, folds, seed, cache, key) -> float:
     """Mean held-out chi2 of the base model on pure noise (the 'noise level' of the gap)."""
     k2 = ("expected",) + key
@@ -524,59 +561,28 @@ def _expected_noise_chi2(prob, folds, seed, cache, key) -> float:
         cache[k2] = v
     return v
 
+def _regions(su: _Setup, lin: Linearisation, x0: np.ndarray, n_noise: int, seed: int) -> pd.DataFrame:
+    """Localisation per output and operating region against pure noise on the same plan (base refitted)."""
+    prob = su.prob
+    real = prob.point >= 0
+    z = su.r_sig - su.a_sig[:, prob.base_cols] @ x0
+    null_z = null_base_residuals(prob, su.a_sig, su.u, su.tau, len(lin.points), max(200, n_noise), seed + 31337)
+    return region_table(z, null_z, prob.point[real], prob.output[real], lin.points, su.outputs)
 
 
+def _chain(su: _Setup, lin: Linearisation, x0: np.ndarray, claimed: str | None) -> pd.DataFrame:
+    """Energy chain of the base fit; a claimed sensor fault is taken out of the readings first."""
+    prob, steps = su.prob, lin.steps
+    delta = np.zeros(len(steps))
+    delta[prob.base_cols] = x0 * steps[prob.base_cols]
+    y = su.y
+    if claimed and is_sensor(claimed):
+        cols = columns_of(prob, claimed)
+        xb, _, _ = fit_all(prob, claimed)
+        delta = np.zeros(len(steps))
+        delta[cols] = xb * steps[cols]
+        sens = prob.cand_cols[claimed]
+        y = su.y - lin.jac[:, su.oi, :][:, :, sens] @ delta[sens]
+        delta[sens] = 0.0
+    return energy_chain(lin, su.outputs, y, lin.predict(delta)[:, su.oi], su.valid)
 
-def _statement(claimed, best, rank, thr, gap_before, gap_after, reduction, ho0, q_chi2, shape, chain, stages,
-               nobs, min_reduction_pct=None) -> str:
-    parts = []
-    sig_shape = shape[shape["shape"] != "none significant"]
-    where = "; ".join(f"{r.output}: {r.shape} (rms {r.rms_sigma:.2g} sigma)" for r in sig_shape.itertuples())
-    if ho0 <= q_chi2 and (len(rank) == 0 or rank["heldout_improvement"].iloc[0] <= thr):
-        parts.append(f"No significant gap: the held-out residual of the base calibration ({gap_before:.2f} sigma "
-                     "rms) is consistent with the measurement noise. No candidate is claimed.")
-    elif claimed:
-        row = rank.iloc[0]
-        parts.append(f"The gap is best explained by '{claimed}' ({row['params']}); held-out gap "
-                     f"{gap_before:.2f} -> {gap_after:.2f} sigma rms ({reduction:.0f} % of the gap above noise "
-                     f"removed), weight {row['weight']:.2f} among the candidates.")
-        if row["at_range_bound"]:
-            parts.append(f"Caution: {row['at_range_bound']} sits at the edge of its documented range, so the "
-                         "data ask for more than the physical effect can give (a larger or a different cause).")
-        if len(rank) > 1:
-            r2 = rank.iloc[1]
-            parts.append(f"Runner-up: '{r2['effect']}' (held-out chi2 {r2['heldout_chi2']:.1f} vs "
-                         f"{row['heldout_chi2']:.1f}).")
-            close = rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
-            if len(close):
-                parts.append("Not distinguishable from it with these measurements (held-out chi2 within the "
-                             f"noise threshold): {', '.join(close)}.")
-    else:
-        parts.append(f"{NO_CANDIDATE[0].upper() + NO_CANDIDATE[1:]}.")
-        if best is not None:
-            row = rank.iloc[0]
-            if row["heldout_improvement"] <= thr:
-                why = "its held-out improvement does not beat noise"
-            else:
-                why = (f"what it leaves (held-out chi2 {row['heldout_chi2']:.0f}) is more than noise and the "
-                       f"base's structural error leave (99 % quantile {q_chi2:.0f})")
-                if min_reduction_pct is not None:
-                    why = f"it removes only {reduction:.0f} % of the held-out gap above noise and {why}"
-            parts.append(f"Best candidate '{best}' ({row['params']}) reduces the held-out gap "
-                         f"{gap_before:.2f} -> {gap_after:.2f} sigma rms, but {why}.")
-    if where:
-        parts.append(f"Where: {where}.")
-    ch = chain[chain["stage"] != "brake at dyno (total)"].dropna(subset=["mean_pct"])
-    if len(ch):
-        se = ch["se_pct"].fillna(np.inf).replace(0, np.inf)
-        tval = (ch["mean_pct"].abs() / se).to_numpy()
-        sig_rows = ch[tval > 2.0]
-        if len(sig_rows):
-            parts.append("Energy chain (share of the torque gap, mean +- s.e.): " + "; ".join(
-                f"{r.stage} {r.mean_pct:+.1f} +- {r.se_pct:.1f} %" for r in sig_rows.itertuples()) + ".")
-    if len(stages):
-        st = stages.iloc[0]
-        if st["beats_noise"]:
-            parts.append(f"Among the library's stages the largest held-out improvement comes from "
-                         f"'{st['stage']}' effects.")
-    return " ".join(parts)

@@ -24,6 +24,15 @@ class FitProblem:
     lo: np.ndarray         # (p,) bounds in step units (base: -inf)
     hi: np.ndarray
 
+    @property
+    def n_obs(self) -> int:
+        """Number of measured observations (rows with ``point < 0`` are prior pseudo-observations)."""
+        return int(np.count_nonzero(self.point >= 0))
+
+    def fold_of_obs(self, folds: np.ndarray) -> np.ndarray:
+        """Fold of each row; prior pseudo-observations get -2 (always fitted, never held out)."""
+        return np.where(self.point >= 0, folds[np.maximum(self.point, 0)], -2)
+
 
 def solve_bounded(a: np.ndarray, r: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     """Bounded linear least squares ||a x - r||, small ridge for rank-deficient columns."""
@@ -56,7 +65,11 @@ def fit_all(prob: FitProblem, cand: str | None, r: np.ndarray | None = None):
 
 
 def heldout(prob: FitProblem, cand: str | None, folds: np.ndarray, r: np.ndarray | None = None) -> tuple[float, np.ndarray]:
-    """Held-out chi2 (sum over folds of test-point residuals) and per-observation held-out residuals."""
+    """Held-out chi2 (sum over folds of test-point residuals) and per-observation held-out residuals.
+
+    Prior pseudo-observations (``point < 0``) are in every training set and never held out (their held-out
+    residual is 0).
+    """
     return heldout_columns(prob, columns_of(prob, cand), folds, r)
 
 
@@ -67,8 +80,8 @@ def heldout_columns(prob: FitProblem, cols: list[int], folds: np.ndarray,
     a = prob.a[:, cols]
     lo, hi = prob.lo[cols], prob.hi[cols]
     pred_res = np.zeros_like(r)
-    fold_of_obs = folds[prob.point]
-    for f in np.unique(folds):
+    fold_of_obs = prob.fold_of_obs(folds)
+    for f in np.unique(fold_of_obs[fold_of_obs >= 0]):
         test = fold_of_obs == f
         train = ~test
         x = solve_bounded(a[train], r[train], lo, hi)

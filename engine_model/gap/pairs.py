@@ -36,7 +36,7 @@ import pandas as pd
 
 from engine_model.gap.diagnose import GapDiagnosis
 from engine_model.gap.fitting import heldout_columns, solve_bounded
-from engine_model.effects import get_effect
+from engine_model.gap.sensors import candidate
 
 __all__ = ["PairSearch", "best_pair", "NO_PAIR"]
 
@@ -93,9 +93,9 @@ def heldout_chi2_linear(prob, cols: list[int], folds: np.ndarray, e: np.ndarray)
     (n_draws,) float64
     """
     a = prob.a[:, cols]
-    fold_of_obs = folds[prob.point]
+    fold_of_obs = prob.fold_of_obs(folds)
     out = np.zeros(e.shape[1])
-    for f in np.unique(fold_of_obs):
+    for f in np.unique(fold_of_obs[fold_of_obs >= 0]):
         test = fold_of_obs == f
         train = ~test
         at = a[train]
@@ -113,7 +113,7 @@ def _params(lin, prob, cols: list[int], x: np.ndarray) -> tuple[str, str]:
     txt, bound = [], []
     for jj, j in enumerate(cols[nb:]):
         g, p = lin.columns[j]
-        prm = get_effect(g).param(p)
+        prm = candidate(g).param(p)
         xv = x[nb + jj]
         txt.append(f"{g}.{p} = {prm.neutral + xv * lin.steps[j]:.4g}")
         if min(abs(xv - prob.lo[j]), abs(xv - prob.hi[j])) < 1e-6 * max(1.0, abs(xv)):
@@ -151,7 +151,7 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         if key not in d.extra:
             raise ValueError(f"best_pair: the diagnosis carries no {key!r}; run engine_model.gap.diagnose first")
     prob, folds, lin = d.extra["problem"], d.extra["folds"], d.extra["linearisation"]
-    cands = list(d.ranking["effect"]) if candidates is None else [get_effect(c).name for c in candidates]
+    cands = list(d.ranking["effect"]) if candidates is None else [candidate(c).name for c in candidates]
     unknown = [c for c in cands if c not in prob.cand_cols]
     if unknown:
         raise ValueError(f"best_pair: candidate(s) {unknown} were not part of the diagnosis")
@@ -188,7 +188,7 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         txt, bound = _params(lin, prob, cols, x)
         red = 100.0 * (ho0 - ho) / excess0 if excess0 > 0 else 0.0
         rows.append({"effect_a": a, "effect_b": b, "params": txt, "heldout_chi2": ho,
-                     "heldout_gap_rms": math.sqrt(ho / prob.r.size), "improvement_over_base": ho0 - ho,
+                     "heldout_gap_rms": math.sqrt(ho / prob.n_obs), "improvement_over_base": ho0 - ho,
                      "improvement_over_best_single": ho1 - ho, "reduction_pct": float(np.clip(red, -999.0, 100.0)),
                      "at_range_bound": bound})
     table = pd.DataFrame(rows).sort_values("heldout_chi2").reset_index(drop=True)

@@ -64,16 +64,21 @@ def plot_chain(d: GapDiagnosis, path: Path) -> Path:
     total = ch[ch["stage"] == "brake at dyno (total)"].iloc[0]
     fig, ax = plt.subplots(figsize=(8, 4))
     cum = 0.0
+    booked = ch["booked"] if "booked" in ch.columns else pd.Series(True, index=ch.index)
     for i, r in enumerate(steps.itertuples()):
         v = 0.0 if not np.isfinite(r.mean_pct) else r.mean_pct
-        ax.bar(i, v, bottom=cum, color="tab:red" if v < 0 else "tab:green", yerr=r.se_pct if np.isfinite(r.se_pct) else None,
-               capsize=4, alpha=0.8 if np.isfinite(r.mean_pct) else 0.2)
-        cum += v
+        if booked[r.Index]:
+            ax.bar(i, v, bottom=cum, color="tab:red" if v < 0 else "tab:green",
+                   yerr=r.se_pct if np.isfinite(r.se_pct) else None, capsize=4, alpha=0.8)
+            cum += v
+        else:               # not significant: drawn as an outline, not added to the waterfall
+            ax.bar(i, v, bottom=cum, fill=False, edgecolor="0.5", linestyle="--",
+                   yerr=r.se_pct if np.isfinite(r.se_pct) else None, capsize=4)
     ax.bar(len(steps), total["mean_pct"], color="tab:blue", yerr=total["se_pct"], capsize=4)
     ax.set_xticks(range(len(steps) + 1), list(steps["stage"]) + ["brake at dyno"], rotation=15, fontsize=8)
     ax.axhline(0, color="k", lw=0.6)
     ax.set_ylabel("measured vs model torque [%]")
-    ax.set_title("Energy chain: where the torque gap arises (mean over points, +- standard error)")
+    ax.set_title("Energy chain: where the torque gap arises (mean +- s.e.; dashed: not significant, not booked)")
     fig.tight_layout()
     write_figure(fig, path, dpi=100)
     plt.close(fig)
@@ -125,6 +130,7 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
 
     Files: ``residual_map.png, energy_chain.png, ranking.png, before_after.png``, ``scores.parquet``
     (candidate ranking), ``residuals.parquet``, ``shape.parquet``, ``chain.parquet``, ``field.parquet``,
+    ``regions.parquet`` (localisation per channel and region),
     ``gap.md`` / ``gap.html`` and ``gap_summary.json``.
     """
     folder = (Path(out) / "gap").resolve()
@@ -137,8 +143,8 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
     rank["param_values"] = d.ranking["param_values"].map(json.dumps)
     paths = {k: write_parquet(v, folder / f"{k}.parquet") for k, v in
              (("scores", rank), ("residuals", d.residuals), ("shape", d.shape), ("chain", d.chain),
-              ("field", d.field), ("stages", d.stages))}
-    summary = {"named": d.named, "best": d.best, "confidence": d.confidence, "statement": d.statement,
+              ("field", d.field), ("stages", d.stages), ("regions", d.regions))}
+    summary = {"category": d.category, "named": d.named, "best": d.best, "confidence": d.confidence, "statement": d.statement,
                "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
                "gap_reduction_pct": d.gap_reduction_pct, "threshold": d.threshold, "n_points": d.n_points,
                "n_obs": d.n_obs, "base_theta": d.base_theta, "excluded": d.excluded.to_dict("records")}
@@ -156,7 +162,12 @@ def write_gap_report(d: GapDiagnosis, out, title: str = "Sim-to-real gap diagnos
             "Measured minus model, in units of the measurement uncertainty (airflow 1 %, torque 0.5 %, exhaust "
             "temperature 5 K, fuel flow 1 %), after the base calibration (refitted on all points).",
             figs["residual_map"], d.shape]),
-        ("Energy chain", [figs["energy_chain"], d.chain]),
+        ("Where: channels and operating regions", [
+            "Mean residual per measured channel and operating region (speed terciles x load halves of the plan), "
+            "in sigma units. A cell is significant when its standardised mean exceeds what the largest cell "
+            "reaches in 95 % of pure-noise data sets on this plan (base refitted to each).", d.regions]),
+        ("Energy chain", ["A share is booked (drawn solid) only when it is at least 3 standard errors from zero "
+                          "and the torque gap itself is.", figs["energy_chain"], d.chain]),
         ("Which effect", [f"Noise threshold of the held-out chi2 improvement: {d.threshold:.2f} (95 % of pure-noise "
                           f"trials on this design stay below it). {d.n_points} points, {d.n_obs} observations.",
                           figs["ranking"], d.ranking[show]]),

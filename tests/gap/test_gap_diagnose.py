@@ -87,7 +87,10 @@ def test_names_the_planted_effect(effect):
     lin = _synthetic()
     named = []
     for seed in range(3):
-        d = diagnose(lin, _measure(lin, _delta(lin, effect), seed), n_noise=100, seed=0)
+        # the physical library alone: in this hand-made linearisation a burn offset changes exhaust T by the
+        # same 12 K at every point, so a burn shift plus an exhaust-T offset reproduces the transmission
+        # loss exactly, a degeneracy the real model does not have (sensor faults: the tests below)
+        d = diagnose(lin, _measure(lin, _delta(lin, effect), seed), n_noise=100, seed=0, sensor_faults=False)
         named.append(d.named)
         assert d.gap_after < d.gap_before
         assert effect in d.top(3)
@@ -142,5 +145,5 @@ def test_bench_missing_outputs_is_a_clear_error():
         diagnose(lin, bad, source="my_bench.csv")
     with pytest.raises(ValueError, match="missing column"):
         check_bench_outputs(pd.DataFrame({"air_mass_flow_kg_h": [1.0]}), "x")
-    with pytest.raises(ValueError, match="unknown effect"):
+    with pytest.raises(ValueError, match=r"unknown effect .warp_drive. \(nor a sensor fault\)"):
         diagnose(lin, _measure(lin, _delta(lin, None), 0), candidates=["warp_drive"])
