@@ -113,3 +113,4 @@ def make_folds(n_points: int, valid_points: np.ndarray, k: int, seed: int,
     for i in np.flatnonzero(valid_points):
         folds[i] = fold_of_group[groups[i]]
     return folds
+

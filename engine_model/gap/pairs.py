@@ -122,7 +122,7 @@ def _params(lin, prob, cols: list[int], x: np.ndarray) -> tuple[str, str]:
 
 
 def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: int = 0,
-              min_reduction_pct: float = 50.0, candidates: list[str] | None = None,
+              candidates: list[str] | None = None,
               noise_cache: dict | None = None) -> PairSearch:
     """Search all pairs of candidate effects for one that explains the gap together.
 
@@ -136,8 +136,6 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         False-claim rate each threshold is set for.
     seed : int
         Monte Carlo seed.
-    min_reduction_pct : float
-        Share of the held-out gap above noise a claimed pair must remove [%] (as for a single effect).
     candidates : list of str, optional
         Effects to pair (default: every candidate the diagnosis ranked).
     noise_cache : dict, optional
@@ -195,8 +193,10 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
     top = table.iloc[0]
     beats = top["improvement_over_base"] > thr
     beyond = top["improvement_over_best_single"] > thr_x
-    enough = top["reduction_pct"] >= min_reduction_pct or top["heldout_chi2"] <= d.noise_chi2_q
-    named = (top["effect_a"], top["effect_b"]) if (beats and beyond and enough) else None
+    # the single candidate's claim rule: what the pair leaves is within noise, no parameter at a range edge
+    enough = top["heldout_chi2"] <= d.noise_chi2_q
+    inside = not top["at_range_bound"]
+    named = (top["effect_a"], top["effect_b"]) if (beats and beyond and enough and inside) else None
     pair_txt = f"'{top['effect_a']}' + '{top['effect_b']}' ({top['params']})"
     gap_txt = (f"held-out gap {d.gap_before:.2f} -> {top['heldout_gap_rms']:.2f} sigma rms, "
                f"{top['reduction_pct']:.0f} % of the gap above noise")
@@ -204,11 +204,6 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
         statement = (f"Best pair: {pair_txt}; {gap_txt}; it improves on the best single candidate "
                      f"'{best_single}' by {top['improvement_over_best_single']:.1f} (noise threshold {thr_x:.1f}), "
                      "so the two together explain the gap.")
-        if top["at_range_bound"]:
-            edge = top["at_range_bound"].split(",")
-            statement += (f" Caution: {' and '.join(edge)} {'sit' if len(edge) > 1 else 'sits'} at the edge of the "
-                          "documented range, so the data ask for more than the effect can physically give: read the "
-                          "pair as the direction of the missing physics, not as fitted causes.")
     else:
         why = []
         if not beats:
@@ -218,6 +213,12 @@ def best_pair(d: GapDiagnosis, n_noise: int = 200, alpha: float = 0.05, seed: in
             why.append(f"it adds {top['improvement_over_best_single']:.1f} to the best single candidate "
                        f"'{best_single}', within what noise adds ({thr_x:.1f})")
         if not enough:
-            why.append(f"it removes only {top['reduction_pct']:.0f} % of the held-out gap above noise")
+            why.append(f"what it leaves (held-out chi2 {top['heldout_chi2']:.0f}) is more than noise leaves (99 % "
+                       f"quantile {d.noise_chi2_q:.0f}); it removes {top['reduction_pct']:.0f} % of the gap above noise")
+        if not inside:
+            edge = top["at_range_bound"].split(",")
+            why.append(f"{' and '.join(edge)} {'sit' if len(edge) > 1 else 'sits'} at the edge of the documented "
+                       "range (the data ask for more than the effects can give: read the pair as the direction of "
+                       "the missing physics)")
         statement = f"Best pair: {pair_txt}; {gap_txt}. {NO_PAIR[0].upper() + NO_PAIR[1:]}: " + "; ".join(why) + "."
     return PairSearch(table=table, named=named, statement=statement, threshold=thr, excess_threshold=thr_x)

@@ -22,10 +22,10 @@ Ranges and realistic sizes (1 sigma of the bench's own uncertainty is in
   intake of a restricted engine and contamination shift them by several percent.
 * fuel flow: gain +-6 %, realistic 3 %; offset +-1 kg/h (Coriolis meters: 0.1-0.5 % of reading when
   zeroed; a stale zero or a return-line leak gives an offset).
-* brake torque: offset only, +-5 Nm, realistic 1.5 Nm (a load cell not re-zeroed after warm-up).  A
-  torque *gain* error reads exactly like a change of the transmission efficiency (brake torque = eta x
-  engine torque), which the library already has; a second, identical candidate could only split the
-  vote, so the verdict names the transmission efficiency and says it could be a torque-meter gain.
+* brake torque: no candidate.  A torque-meter offset reads exactly like a change of the friction level
+  (a constant FMEP is a constant torque), and a gain error exactly like a change of the transmission
+  efficiency (brake torque = eta x engine torque); both are in the library, and a second, identical
+  candidate could only split the vote.  The verdict says so when it names either.
 
 BSFC is derived from fuel flow and torque and gets no fault of its own.
 """
@@ -54,7 +54,6 @@ _CHANNELS = {
     "exhaust_temp_k": ("K", 60.0, 20.0, 5.0, 2.0),
     "air_mass_flow_kg_h": ("kg/h", 6.0, 2.0, 6.0, 3.0),
     "fuel_mass_flow_kg_h": ("kg/h", 1.0, 0.3, 6.0, 3.0),
-    "brake_torque_nm": ("Nm", 5.0, 1.5, None, None),
 }
 
 

@@ -59,6 +59,9 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
                      f"weight {row['weight']:.2f} among the candidates.")
         if claimed == "transmission_efficiency":
             parts.append("A gain error of the torque meter reads the same (brake torque = eta x engine torque).")
+        if claimed == "friction":
+            parts.append("An offset of the torque meter reads like a change of the friction level (a constant "
+                         "torque); only the friction's speed term tells them apart.")
         close = rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
         if len(close):
             parts.append("Not distinguishable from it with these measurements (held-out chi2 within the noise "

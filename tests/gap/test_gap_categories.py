@@ -56,7 +56,7 @@ def _fault(m, channel, offset=0.0, gain_pct=0.0):
 
 def test_sensor_columns_are_exact_and_only_touch_their_channel():
     lin = with_sensor_faults(_lin())
-    for ch in OUTS:
+    for ch in ("air_mass_flow_kg_h", "exhaust_temp_k"):
         cols = lin.column_index(sensor_name(ch))
         assert cols, ch
         k = OUTS.index(ch)
@@ -64,8 +64,8 @@ def test_sensor_columns_are_exact_and_only_touch_their_channel():
             assert np.all(lin.jac[:, [i for i in range(len(OUTS)) if i != k], j] == 0)
         off = lin.columns.index((sensor_name(ch), "offset"))
         assert np.allclose(lin.jac[:, k, off], 1.0)
-    # torque has no gain column: a torque gain is the transmission efficiency
-    assert [p for g, p in lin.columns if g == sensor_name("brake_torque_nm")] == ["offset"]
+    # no torque candidate: an offset is the friction level, a gain the transmission efficiency
+    assert not lin.column_index(sensor_name("brake_torque_nm"))
     assert candidate("sensor_exhaust_temp_k") is SENSOR_FAULTS["sensor_exhaust_temp_k"]
 
 
@@ -87,13 +87,13 @@ def test_a_single_channel_fault_is_named_as_a_sensor_fault_on_that_channel(chann
     assert sum(c == ("sensor fault", sensor_name(channel)) for c in cats) >= 3, cats
 
 
-@pytest.mark.parametrize("channel,offset", [("exhaust_temp_k", 20.0), ("brake_torque_nm", -1.5)])
-def test_a_fault_the_burn_law_can_mimic_is_never_pinned_on_something_else(channel, offset):
-    """Torque and exhaust T both move with the burn: a burn shift plus a two-channel effect can copy a
-    one-channel fault, so the answer may be 'indistinguishable', but the fault is among the named."""
+def test_a_fault_the_burn_law_can_mimic_is_never_pinned_on_something_else():
+    """Torque and exhaust T both move with the burn: a burn shift plus a two-channel effect can copy an
+    exhaust-T offset, so the answer may be 'indistinguishable', but the fault is among the named."""
     lin = _lin()
+    channel = "exhaust_temp_k"
     for seed in range(4):
-        d = diagnose(lin, _fault(_measure(lin, _delta(lin, None), seed), channel, offset), n_noise=100, seed=0)
+        d = diagnose(lin, _fault(_measure(lin, _delta(lin, None), seed), channel, 20.0), n_noise=100, seed=0)
         assert d.category in ("sensor fault", "indistinguishable"), (d.category, d.best)
         named = [d.named] if d.named else d.extra["indistinguishable"]
         assert sensor_name(channel) in named, (d.category, named)

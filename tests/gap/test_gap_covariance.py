@@ -114,8 +114,6 @@ def test_error_models_and_their_errors():
         get_error_model("gls")
     with pytest.raises(ValueError, match="burn_scatter_deg"):
         ErrorModel("bad", {}, -0.1)
-    with pytest.raises(ValueError, match="min_reduction_pct"):
-        ErrorModel("bad", {}, 0.3, 150.0)
 
 
 def test_burn_scatter_needs_the_burn_column():

@@ -299,7 +299,7 @@ def test_burn_scatter_discounts_contrasts_a_burn_deviation_can_mimic():
         d2[0.0][("blowby", "transmission_efficiency")], rel=0.02)
 
 
-def test_speed_curvature_only_when_asked_and_carried():
+def test_speed_curvature_and_m_offset_only_when_asked_and_carried():
     # 32 scattered map-wide points over 6000-12500 rpm: carried when asked; 12 points or one load line: never
     def table(n, thr=None):
         rng = np.random.default_rng(4)
@@ -309,10 +309,9 @@ def test_speed_curvature_only_when_asked_and_carried():
                              "spark_deg_btdc": np.atleast_1d(priors.spark_estimate(sp, th))})
     curv = "bdur_speed2_deg_per_krpm2"
     assert curv not in choose_base(table(32)).params
-    assert choose_base(table(32), speed_curvature=True).params[-1] == curv
-    assert curv not in choose_base(table(12), speed_curvature=True).params
-    assert curv not in choose_base(table(32, thr=100.0), speed_curvature=True).params
-    assert curv not in choose_base(load_bench(None), speed_curvature=True).params
+    assert choose_base(table(32), speed_curvature=True).params[-2:] == (curv, "m_offset")
+    for small in (table(12), table(32, thr=100.0), load_bench(None)):
+        assert not {curv, "m_offset"} & set(choose_base(small, speed_curvature=True).params)
 
 
 def test_speed_curvature_moves_the_burn_by_the_square_of_the_speed_offset():
