@@ -10,7 +10,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model.gap.outside import (CATEGORIES, OUTSIDE_COLUMNS, OutsideCase, category_of, outside_cases,
+from engine_model.gap.outside import (CATEGORIES, OUTSIDE_COLUMNS, category_of, outside_cases, prepared_of,
                                       run_outside_benchmark, score_diagnosis, summarise_outside, overall_outside,
                                       write_outside_report)
 
@@ -43,7 +43,7 @@ def test_sensor_fault_changes_only_its_channel(name):
     c = CASES[name]
     m = _rows()
     assert _changed(m, c.readings(m)) == [c.channel]
-    assert c.accept == {f"sensor_{c.channel}"}
+    assert f"sensor_{c.channel}" in c.accept
 
 
 def test_reading_truths_change_the_channels_their_form_says():
@@ -74,6 +74,9 @@ def test_case_list_covers_the_issue():
     assert kinds["null"] == 1
     for c in outside_cases():
         assert (c.readings is None) != (c.spec_change is None) or c.kind == "null", c.name
+    # at least three sensor faults only their own sensor candidate explains
+    must = [c.name for c in outside_cases() if c.must_name]
+    assert len(must) >= 3 and "sensor_torque_offset" not in must
 
 
 # --------------------------------------------------------------------------- scoring (fast)
@@ -125,13 +128,14 @@ def test_summary_counts():
         kind = {"a": "functional form", "n": "null", "s": "sensor fault"}[case]
         rows.append({"case": case, "kind": kind, "outcome": outcome, "confident_wrong": conf,
                      "acceptable": outcome == "right", "named": "x" if outcome == "wrong_claim" else "",
-                     "category": "explained", "sensor_right_channel": False})
+                     "category": "explained", "sensor_right_channel": False, "must_name": case == "s"})
     t = pd.DataFrame(rows)
     s = summarise_outside(t).set_index("kind")
     assert s.loc["functional form", "right_pct"] == 50 and s.loc["functional form", "confident_wrong"] == 1
     assert s.loc["sensor fault", "refusal_pct"] == 100
     ov = overall_outside(t)
     assert ov["null_false_claims"] == 1 and ov["null_trials"] == 2 and ov["right_or_refusal_pct"] == 60
+    assert ov["sensor_must_name_trials"] == 1 and ov["sensor_right_channel_pct"] == 0
 
 
 # --------------------------------------------------------------------------- the machinery (slow)
@@ -189,4 +193,15 @@ def test_trial_table_and_report(run):
     g = t.groupby("case")["gap_before"].median()
     assert g["sensor_exhaust_t_offset"] > g["none"] + 0.3
     assert g["friction_speed_squared"] > g["none"]
-    assert paths["markdown"].read_text().count("|") > 20
+    md = paths["markdown"].read_text()
+    assert "Per case kind" in md and all(n in md for n in SLOW_CASES)
+
+
+@pytest.mark.slow
+def test_prepared_truths_rediagnose_without_simulation(run):
+    res, _ = run
+    again = run_outside_benchmark(prepared=prepared_of(res), seeds=2, null_seeds=3,
+                                  cases=[CASES[n] for n in SLOW_CASES], k_folds=4, n_noise=40)
+    cols = ["case", "seed", "category", "named", "best", "gap_before", "gap_after"]
+    pd.testing.assert_frame_equal(res["table"][cols], again["table"][cols])
+    assert again["timing"]["linearisation_s"] == 0.0
