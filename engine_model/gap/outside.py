@@ -53,8 +53,11 @@ __all__ = ["OutsideCase", "outside_cases", "CASE_KINDS", "CATEGORIES", "CLAIM_CA
 #: Case kinds, in the order of the summary table.
 CASE_KINDS = ("functional form", "sensor fault", "structural", "null")
 
-#: Answer categories of the diagnosis; the first two are claims.
-CATEGORIES = ("explained", "sensor fault", "partly explained", "not in the library", "no significant gap")
+#: Answer categories of the diagnosis; the first two are claims.  "indistinguishable" (a candidate fits, but so
+#: does one of another kind: no name claimed, the set is in ``extra["indistinguishable"]``) scores as a refusal;
+#: the trial table says whether the set holds an accepted name (``hedge_has_right``).
+CATEGORIES = ("explained", "sensor fault", "indistinguishable", "partly explained", "not in the library",
+              "no significant gap")
 CLAIM_CATEGORIES = ("explained", "sensor fault")
 
 #: Null trials per run by default (the issue's "null false claims <= 5 % over >= 60 null trials").
@@ -63,7 +66,8 @@ NULL_SEEDS = 60
 #: Columns of outside_trials.csv.
 OUTSIDE_COLUMNS = ("case", "kind", "seed", "category", "named", "best", "outcome", "acceptable", "confident_wrong",
                    "sensor_right_channel", "must_name", "accept", "gap_before", "gap_after", "gap_reduction_pct",
-                   "named_heldout_chi2", "noise_chi2_q", "named_at_range_bound", "n_points_used", "n_bench_backoff")
+                   "named_heldout_chi2", "noise_chi2_q", "named_at_range_bound", "hedge_set", "hedge_has_right",
+                   "n_points_used", "n_bench_backoff")
 
 _MEASURED = ("brake_torque_nm", "air_mass_flow_kg_h", "fuel_mass_flow_kg_h", "exhaust_temp_k")
 
@@ -347,11 +351,14 @@ def score_diagnosis(case: OutsideCase, d) -> dict:
         outcome = "right" if claimed in case.accept else "wrong_claim"
     confident = outcome == "wrong_claim" and (bool(at_bound) or (np.isfinite(ho) and ho > d.noise_chi2_q))
     acceptable = outcome == "right" or (outcome == "refusal" and case.refusal_ok)
+    hedge = [str(x) for x in ((getattr(d, "extra", None) or {}).get("indistinguishable") or [])] \
+        if cat == "indistinguishable" else []
     return {"category": cat, "named": claimed or "", "best": d.best or "", "outcome": outcome,
             "acceptable": bool(acceptable), "confident_wrong": bool(confident),
             "sensor_right_channel": bool(case.channel is not None and cat == "sensor fault"
                                          and claimed == f"sensor_{case.channel}"),
-            "must_name": case.must_name,
+            "must_name": case.must_name, "hedge_set": ",".join(hedge),
+            "hedge_has_right": bool(set(hedge) & set(case.accept)),
             "named_heldout_chi2": ho, "noise_chi2_q": float(d.noise_chi2_q), "named_at_range_bound": at_bound}
 
 

@@ -115,6 +115,12 @@ def test_scoring_outcomes():
     # "partly explained" with a named best is not a claim
     s = score_diagnosis(fr, _diag(named="blowby", category="partly explained"))
     assert s["outcome"] == "refusal" and s["named"] == ""
+    # "indistinguishable" names nothing: a refusal, with the set and whether it holds an accepted name
+    d = _diag(category="indistinguishable", best="friction")
+    d.extra["indistinguishable"] = ["friction", "transmission_speed_loss"]
+    s = score_diagnosis(fr, d)
+    assert s["outcome"] == "refusal" and s["hedge_has_right"] and s["hedge_set"] == "friction,transmission_speed_loss"
+    assert not score_diagnosis(sens, d)["hedge_has_right"]
     # confident wrong: at the range edge, or more left than the noise quantile
     assert score_diagnosis(fr, _diag(named="blowby", at_bound="fraction_at_6000"))["confident_wrong"]
     assert score_diagnosis(fr, _diag(named="blowby", ho=25.0, q=20.0))["confident_wrong"]
