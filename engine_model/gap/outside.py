@@ -536,6 +536,9 @@ def overall_outside(table: pd.DataFrame) -> dict:
             "acceptable_pct": 100.0 * float(table["acceptable"].mean()),
             "confident_wrong": int(table["confident_wrong"].sum()),
             "null_trials": len(null), "null_false_claims": int((null["outcome"] == "wrong_claim").sum()),
+            # null trials that report a significant gap without naming anything (e.g. "indistinguishable")
+            "null_gap_reported": int((null["category"] != "no significant gap").sum()),
+            "null_hedged": int((null["category"] == "indistinguishable").sum()),
             "null_false_claim_pct": 100.0 * float((null["outcome"] == "wrong_claim").mean()) if len(null) else
             float("nan"),
             "sensor_must_name_trials": len(sens),
@@ -569,7 +572,8 @@ def write_outside_report(result: dict, out) -> dict:
         ("Overall", [f"{ov['trials']} trials: right or honest refusal {ov['right_or_refusal_pct']:.1f} %, "
                      f"acceptable by the cases' own rule {ov['acceptable_pct']:.1f} %, confident wrong claims "
                      f"{ov['confident_wrong']}; null false claims {ov['null_false_claims']} of "
-                     f"{ov['null_trials']}; sensor faults named on the right channel "
+                     f"{ov['null_trials']} (a significant gap reported without a name in {ov['null_gap_reported']}, of them "
+                     f"'indistinguishable' {ov['null_hedged']}); sensor faults named on the right channel "
                      f"{ov['sensor_right_channel_pct']:.1f} % of {ov['sensor_must_name_trials']} must-name trials."]),
         ("Per case kind", [result["summary"]]),
         ("Per case", [result["by_case"]]),

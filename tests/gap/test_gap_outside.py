@@ -142,6 +142,7 @@ def test_summary_counts():
     ov = overall_outside(t)
     assert ov["null_false_claims"] == 1 and ov["null_trials"] == 2 and ov["right_or_refusal_pct"] == 60
     assert ov["sensor_must_name_trials"] == 1 and ov["sensor_right_channel_pct"] == 0
+    assert ov["null_gap_reported"] == 2 and ov["null_hedged"] == 0
 
 
 # --------------------------------------------------------------------------- the machinery (slow)
