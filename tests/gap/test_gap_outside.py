@@ -160,7 +160,7 @@ def run(tmp_path_factory):
     plan = plan[["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda"]]
     res = run_outside_benchmark(plan=plan, seeds=2, null_seeds=3, cases=[CASES[n] for n in SLOW_CASES],
                                 candidates=["transmission_efficiency", "friction", "heat_transfer"],
-                                base_iterations=1, k_folds=4, n_noise=40)
+                                base_iterations=1, k_folds=4, n_noise=30)
     paths = write_outside_report(res, tmp_path_factory.mktemp("outside"))
     return res, paths
 
@@ -208,7 +208,7 @@ def test_trial_table_and_report(run):
 def test_prepared_truths_rediagnose_without_simulation(run):
     res, _ = run
     again = run_outside_benchmark(prepared=prepared_of(res), seeds=2, null_seeds=3,
-                                  cases=[CASES[n] for n in SLOW_CASES], k_folds=4, n_noise=40)
+                                  cases=[CASES[n] for n in SLOW_CASES], k_folds=4, n_noise=30)
     cols = ["case", "seed", "category", "named", "best", "gap_before", "gap_after"]
     pd.testing.assert_frame_equal(res["table"][cols], again["table"][cols])
     assert again["timing"]["linearisation_s"] == 0.0
