@@ -8,7 +8,8 @@
     mbc simulate simulate a small table in this process (no Prefect, no Dask)
     mbc calibrate airflow matching + Wiebe combustion identification on bench data (Dask sweeps)
     mbc gap      sim-to-real gap diagnosis of bench data (where, which effect, how far it shrinks), or of a run
-    mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench)
+    mbc gap-benchmark  prove the gap diagnosis on withheld effects (virtual bench; --suite outside:
+                       truths outside its library)
     mbc gap-plan       propose bench points that tell the gap library's effects apart
 
 It lives in ``flows`` because it drives Prefect and Dask; ``engine_model``
@@ -193,6 +194,13 @@ def cmd_gap(args) -> int:
 def cmd_gap_benchmark(args) -> int:
     from flows.stages.gap import run_gap_benchmark
 
+    if args.suite == "outside":
+        run_gap_benchmark(out=args.out, seeds=args.seeds, spec=args.spec, suite="outside", workers=args.workers,
+                          dask_address=args.dask_address, seed_start=args.seed_start, null_seeds=args.null_seeds,
+                          plan=args.plan)
+        return 0
+    if args.plan is not None:
+        raise ValueError("mbc gap-benchmark: --plan is an option of --suite outside")
     run_gap_benchmark(out=args.out, seeds=args.seeds, small=args.small, spec=args.spec, workers=args.workers,
                       dask_address=args.dask_address, seed_start=args.seed_start, design=args.design)
     return 0
@@ -401,6 +409,15 @@ def build_parser() -> argparse.ArgumentParser:
                     help="benchmark DOE: 32 points chosen from a candidate pool to tell the effects apart "
                          "(default, as mbc gap-plan), or 32 scattered Sobol' points (cheaper to plan)")
     gb.add_argument("--small", action="store_true", help="a few effects, one magnitude, 20 points")
+    gb.add_argument("--suite", choices=("library", "outside"), default="library",
+                    help="library (default): withheld effects of the diagnosis' own library; outside: functional "
+                         "forms, sensor faults and structural truths the library lacks, plus the null "
+                         "(engine_model.gap.outside) -> <out>/gap/outside_*.csv")
+    gb.add_argument("--null-seeds", type=int, default=60,
+                    help="--suite outside: noise seeds of the null case (default 60)")
+    gb.add_argument("--plan", default=None,
+                    help="--suite outside: plan CSV (e.g. from mbc gap-plan); default the 32-point "
+                         "discriminating plan, computed first")
     gb.add_argument("--spec", default=None, help="engine spec TOML (default: embedded Yamaha R6 FS)")
     dask(gb)
     gb.set_defaults(func=cmd_gap_benchmark)

@@ -40,7 +40,8 @@ from engine_model.gap.design import discrimination_plan
 from engine_model.gap.linear import BaseModel, calibrate_base, linearise
 
 __all__ = ["BENCHMARK_COLUMNS", "benchmark_plan", "run_benchmark", "summarise_benchmark", "ool_bump",
-           "BENCH_SOLVER", "OOL_EFFECT", "DEFAULT_DESIGN"]
+           "BENCH_SOLVER", "OOL_EFFECT", "DEFAULT_DESIGN",
+           "base_and_linearisation"]
 
 #: Columns of gap_benchmark.csv (the issue's list, in its order).
 BENCHMARK_COLUMNS = ("effect_withheld", "magnitude", "seed", "effect_named", "top1_correct", "top3_correct",
@@ -128,13 +129,6 @@ def benchmark_plan(n: int = 32, seed: int = 0, spec: EngineSpec | None = None,
     plan["op_id"] = plan["point_id"]
     return plan
 
-
-
-
-
-
-
-
 @dataclass
 class _Case:
     effect: str
@@ -209,8 +203,6 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     from engine_model.bench.virtual import NoiseModel, VirtualBench, apply_noise
     from engine_model.bench.burnlaw import BurnLaw
 
-    from engine_model.gap.api import choose_base
-
     say = progress or (lambda s: None)
     spec = default_spec() if spec is None else spec
     ev0 = evaluate or (lambda p: simulate(spec, p, solver))
@@ -240,23 +232,10 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     n_back = {k: int((p["bench_backoff_deg"] > 0).sum()) for k, p in plans.items() if "bench_backoff_deg" in p}
     say(f"truth: {len(cases)} noiseless bench runs ({t_truth:.0f} s); points backed off for knock on the "
         f"bench: {sorted(set(n_back.values()))}")
-    null = truth[("none", 0.0)]
-    null_plan = plans[("none", 0.0)]
-    # the base the data as run can carry (the bench back-off spreads the sparks)
-    base = choose_base(null_plan, speed_curvature=True) if base is None else base
-    say(f"base: {base.params}")
-    theta, _, hist = calibrate_base(null_plan, null, ev, base, iterations=base_iterations, spec=spec)
-    t_cal = time.perf_counter() - t0 - t_truth
-    say(f"base calibration on the null case: {theta} ({t_cal:.0f} s)")
-    cands = list(EFFECTS) if candidates is None else [get_effect(e).name for e in candidates]
-    union = pd.concat(list(plans.values()), ignore_index=True, sort=False)
-    union = union.drop_duplicates(subset="point_id", keep="first").reset_index(drop=True)
-    lin_all = linearise(union, ev, base, effects=cands, theta=theta, spec=spec)
-    lins = {k: lin_all.select(list(p["point_id"].astype(str))) for k, p in plans.items()}
-    lin = lins[("none", 0.0)]
-    t_lin = time.perf_counter() - t0 - t_truth - t_cal
-    say(f"linearisation: {lin_all.n_simulations} simulations ({t_lin:.0f} s), {int(lin_all.ok.sum())} of "
-        f"{len(union)} points ok")
+    prep = base_and_linearisation(plans, truth, ("none", 0.0), ev, spec, base=base, base_iterations=base_iterations,
+                                  candidates=candidates, progress=say)
+    base, theta, lin_all, lins = prep["base"], prep["theta"], prep["linearisation"], prep["linearisations"]
+    t_cal, t_lin = prep["calibration_s"], prep["linearisation_s"]
     noise = NoiseModel()
     cache: dict = {}
     rows = []
@@ -303,6 +282,56 @@ def run_benchmark(seeds: int = 3, magnitudes: Sequence[float] = (0.25, 0.5, 1.0)
     return {"table": table, "summary": summarise_benchmark(table), "plan": plan, "base_theta": theta,
             "verification": pd.DataFrame(ver), "timing": timing, "linearisation": lin_all, "diagnoses": diags,
             "plans": plans, "truth": truth, "linearisations": lins}
+
+
+def base_and_linearisation(plans: dict, truth: dict, null_key, evaluate: Callable, spec: EngineSpec,
+                           base: BaseModel | None = None, base_iterations: int = 3,
+                           candidates: Sequence[str] | None = None,
+                           progress: Callable[[str], None] | None = None) -> dict:
+    """The diagnosis' side of a benchmark: base calibration on the null case, one linearisation of all plans.
+
+    Shared by :func:`run_benchmark` and :func:`engine_model.gap.outside.run_outside_benchmark`.
+
+    Parameters
+    ----------
+    plans, truth : dict {case key: DataFrame}
+        Every case's plan as the bench ran it and its noiseless bench rows.
+    null_key
+        Key of the null case (no effect): the base is calibrated on its noiseless rows.
+    evaluate : callable(plan) -> results
+        The diagnosis' model (the default spec), never a truth's altered one.
+    base : BaseModel, optional
+        Default :func:`engine_model.gap.api.choose_base` of the null plan as run (speed curvature allowed).
+    candidates : sequence of str, optional
+        Effects to linearise (default: the whole library).
+
+    Returns
+    -------
+    dict
+        ``base``, ``theta``, ``linearisation`` (of the union of the plans as run), ``linearisations`` (per
+        case key, rows of its plan), ``calibration_s``, ``linearisation_s``.
+    """
+    from engine_model.gap.api import choose_base
+
+    say = progress or (lambda s: None)
+    t0 = time.perf_counter()
+    null, null_plan = truth[null_key], plans[null_key]
+    # the base the data as run can carry (the bench back-off spreads the sparks)
+    base = choose_base(null_plan, speed_curvature=True) if base is None else base
+    say(f"base: {base.params}")
+    theta, _, _ = calibrate_base(null_plan, null, evaluate, base, iterations=base_iterations, spec=spec)
+    t_cal = time.perf_counter() - t0
+    say(f"base calibration on the null case: {theta} ({t_cal:.0f} s)")
+    cands = list(EFFECTS) if candidates is None else [get_effect(e).name for e in candidates]
+    union = pd.concat(list(plans.values()), ignore_index=True, sort=False)
+    union = union.drop_duplicates(subset="point_id", keep="first").reset_index(drop=True)
+    lin_all = linearise(union, evaluate, base, effects=cands, theta=theta, spec=spec)
+    lins = {k: lin_all.select(list(p["point_id"].astype(str))) for k, p in plans.items()}
+    t_lin = time.perf_counter() - t0 - t_cal
+    say(f"linearisation: {lin_all.n_simulations} simulations ({t_lin:.0f} s), {int(lin_all.ok.sum())} of "
+        f"{len(union)} points ok")
+    return {"base": base, "theta": theta, "linearisation": lin_all, "linearisations": lins,
+            "calibration_s": t_cal, "linearisation_s": t_lin}
 
 
 def _verify(plans, lins, truth, diags, names, seed, ev, spec) -> list[dict]:

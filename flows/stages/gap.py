@@ -132,6 +132,41 @@ def gap_benchmark_flow(out: str, seeds: int = 3, small: bool = False, spec: str 
             "summary": s.to_dict("records")}
 
 
+@flow(name="gap-benchmark-outside", log_prints=False, validate_parameters=False)
+def gap_outside_flow(out: str, seeds: int = 3, seed_start: int = 0, null_seeds: int = 60, plan: str | None = None,
+                     spec: str | None = None, workers: int = DEFAULT_WORKERS, dask_address: str | None = None,
+                     progress: bool = False) -> dict:
+    """The outside-library benchmark (``engine_model.gap.outside``) into ``<out>/gap/outside_*``.
+
+    The diagnosis' simulations (plan, base calibration, linearisation) run as sweeps on Dask; a structural
+    truth's (another spec than the diagnosis') run in-process, one noiseless bench run of the plan each.
+    ``plan``: a plan CSV (e.g. ``mbc gap-plan``'s); default the 32-point discriminating plan.
+    """
+    from engine_model import load_spec
+    from engine_model.gap.bench_procedure import BENCH_SOLVER
+    from engine_model.gap.outside import run_outside_benchmark, write_outside_report
+    from engine_model.sim.simulate import simulate
+
+    base_spec = load_spec(spec)
+    plan_df = None
+    if plan is not None:
+        plan_df = read_table(Path(plan))
+        plan_df["point_id"] = plan_df["point_id"].astype(str)
+    with shared_cluster(workers, dask_address) as addr:
+        ev = SweepEvaluator(Path(out) / "sweeps", addr, spec=spec, step_deg=BENCH_SOLVER.step_deg,
+                            tolerance=BENCH_SOLVER.tolerance, label="bench", progress=progress)
+
+        def evaluate_for(sp):
+            return ev if sp is base_spec else (lambda p: simulate(sp, p, BENCH_SOLVER))
+
+        res = run_outside_benchmark(plan=plan_df, seeds=seeds, seed_start=seed_start, null_seeds=null_seeds,
+                                    spec=base_spec, evaluate_for=evaluate_for, progress=print)
+    paths = write_outside_report(res, out)
+    return {"csv": str(paths["trials"]), "summary_csv": str(paths["summary"]), "report": str(paths["markdown"]),
+            "trials": len(res["table"]), "timing": res["timing"], "overall": res["overall"],
+            "summary": res["summary"].to_dict("records")}
+
+
 def small_settings() -> dict:
     """``--small``: a few effects, one magnitude, a 20-point DOE (minutes, not tens of minutes)."""
     return {"effects": ["transmission_efficiency", "heat_transfer", "restrictor", "combustion_efficiency"],
@@ -152,10 +187,19 @@ def run_gap(out, bench=None, spec=None, **kwargs) -> dict:
     return res
 
 
-def run_gap_benchmark(out, seeds=3, small=False, spec=None, **kwargs) -> dict:
-    """``mbc gap-benchmark``: run :func:`gap_benchmark_flow` under one Prefect API."""
+def run_gap_benchmark(out, seeds=3, small=False, spec=None, suite="library", **kwargs) -> dict:
+    """``mbc gap-benchmark``: run :func:`gap_benchmark_flow` (``suite="library"``, default) or
+    :func:`gap_outside_flow` (``suite="outside"``; takes ``seed_start``, ``null_seeds``, ``plan``, ``workers``,
+    ``dask_address``) under one Prefect API."""
     CalibratedEngine.from_spec(spec)
+    if suite not in ("library", "outside"):
+        raise ValueError(f"gap-benchmark: suite {suite!r} unknown; valid: ['library', 'outside']")
+    if suite == "outside" and kwargs.get("plan") is not None and not Path(kwargs["plan"]).is_file():
+        raise ValueError(f"plan file not found: {kwargs['plan']}")
     with prefect_env.prefect_api(verbose=kwargs.get("progress", False)):
-        res = gap_benchmark_flow(out=str(out), seeds=seeds, small=small, spec=spec, **kwargs)
+        if suite == "outside":
+            res = gap_outside_flow(out=str(out), seeds=seeds, spec=spec, **kwargs)
+        else:
+            res = gap_benchmark_flow(out=str(out), seeds=seeds, small=small, spec=spec, **kwargs)
     print(json.dumps(res, indent=1, default=str)[:4000])
     return res

@@ -62,3 +62,19 @@ def test_gap_plan_coverage_options_and_too_few_points(tmp_path, capsys):
     assert main(["gap-plan", "--out", str(out), "--max-speed-gap-rpm", "0"]) == 2
     assert "--max-speed-gap-rpm 0" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_gap_benchmark_outside_suite_options(tmp_path, capsys):
+    """`--suite outside` parses its options; a missing plan file or --plan without it fails before any run."""
+    from flows.cli import build_parser
+
+    args = build_parser().parse_args(["gap-benchmark", "--out", "x", "--suite", "outside", "--null-seeds", "70",
+                                      "--plan", "p.csv", "--seeds", "4", "--seed-start", "3"])
+    assert (args.suite, args.null_seeds, args.plan, args.seeds, args.seed_start) == ("outside", 70, "p.csv", 4, 3)
+    assert build_parser().parse_args(["gap-benchmark", "--out", "x"]).suite == "library"
+    assert main(["gap-benchmark", "--out", str(tmp_path / "o"), "--suite", "outside",
+                 "--plan", str(tmp_path / "nope.csv")]) == 2
+    assert "plan file not found" in capsys.readouterr().err
+    assert main(["gap-benchmark", "--out", str(tmp_path / "o"), "--plan", str(tmp_path / "nope.csv")]) == 2
+    assert "--suite outside" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
