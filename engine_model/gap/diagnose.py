@@ -261,12 +261,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     claimed = best if beats and resid_ok and not at_edge and not rivals else None
     if claimed:
         category = "sensor fault" if is_sensor(claimed) else "explained"
-    elif beats and resid_ok and not at_edge:
-        category = "indistinguishable"
-    elif beats:
+    elif beats and not (resid_ok and not at_edge):
         category = "partly explained"
-    elif ho0 <= q_chi2:
+    elif ho0 <= q_chi2:     # also when rivals of two kinds each beat noise on a gap that noise could leave
         category = "no significant gap"
+    elif beats:
+        category = "indistinguishable"
     else:
         category = "not in the library"
     conf = float(rank["weight"].iloc[0]) if claimed else 0.0

@@ -51,6 +51,10 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
         parts.append(f"No significant gap: the held-out residual of the base calibration ({gap_before:.2f} sigma "
                      "rms) is consistent with the measurement noise and the base's structural error. No "
                      "candidate is claimed.")
+        if row is not None and row["heldout_improvement"] > thr:
+            close = rank[rank["heldout_chi2"] - row["heldout_chi2"] < thr]["effect"]
+            parts.append(f"({' and '.join(_who(c) for c in close)} would each reduce it by more than noise alone, "
+                         "and cannot be told apart here.)")
     elif category in ("explained", "sensor fault"):
         head = ("The gap is a sensor fault: " + _who(claimed) if category == "sensor fault"
                 else f"The gap is explained by '{claimed}'")
