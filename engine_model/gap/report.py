@@ -92,11 +92,19 @@ def plot_ranking(d: GapDiagnosis, path: Path) -> Path:
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(r) + 1.5))
     colors = ["tab:green" if e == d.named else ("tab:orange" if b else "0.6")
               for e, b in zip(r["effect"], r["beats_noise"])]
-    ax.barh(r["effect"], r["heldout_improvement"], color=colors)
-    ax.axvline(d.threshold, color="k", ls="--", label=f"noise threshold {d.threshold:.1f}")
+    edge = r["at_range_bound"].astype(bool).to_numpy() if "at_range_bound" in r.columns else np.zeros(len(r), bool)
+    bars = ax.barh(r["effect"], r["heldout_improvement"], color=colors)
+    for bar, e in zip(bars, edge):
+        if e:
+            bar.set_hatch("//")
+    handles = [ax.axvline(d.threshold, color="k", ls="--", label=f"noise threshold {d.threshold:.1f}")]
+    if edge.any():
+        from matplotlib.patches import Patch
+
+        handles.append(Patch(facecolor="white", edgecolor="k", hatch="//", label="a parameter at its range edge"))
     ax.set_xlabel("held-out chi2 improvement over the base model")
-    ax.legend(fontsize=8)
-    ax.set_title("Candidate ranking (K-fold over operating points)")
+    ax.legend(handles=handles, fontsize=8)
+    ax.set_title(f"Candidate ranking (K-fold over operating points): {d.category}")
     fig.tight_layout()
     write_figure(fig, path, dpi=100)
     plt.close(fig)
