@@ -5,11 +5,13 @@ noise seeds (the truth is simulated once; seeds only redraw the bench noise), a 
 library, 2 base-calibration iterations, 1 deg crank steps at the linearisation tolerance (the same solver
 for the truth and the model, so the comparison is about physics).  ~360 simulations, ~30 s.
 
-Rates measured on this design over 40 seeds, with the code compiled for the host CPU and for a generic
-x86-64 (``NUMBA_CPU_NAME=generic``): top-1 100/100 % (intake air temperature), 100/97.5 % (restrictor),
-90/90 % (transmission efficiency); no false claim in the null case 80/87.5 %; out-of-library bump not
-attributed 100/97.5 %.  The thresholds below hold with those rates except with a probability below 1 %
-each (binomial tails; docs/testing.md).
+Rates measured on this design over 40 seeds (0-39), identical with the code compiled for the host CPU
+and for a generic x86-64 (``NUMBA_CPU_NAME=generic``): top-1 97.5 % (intake air temperature), 97.5 %
+(restrictor), 67.5 % (transmission efficiency: on 12 points it is often claimed as another torque loss
+of the 5-effect library); a false claim in the null case 2.5 %; the out-of-library bump claimed in 0 of
+40.  With the claim rule that needs the remainder within noise (no 50 % path) these replace the earlier
+100/100/90 %, null 20 % and bump 2.5 %; the thresholds below follow from them and hold except with a
+probability below 1 % each (binomial tails; docs/testing.md).
 """
 
 import numpy as np
@@ -52,28 +54,26 @@ def test_benchmark_accuracy_and_null(bench):
     res, _ = bench
     t = res["table"]
     lib = t[t["effect_withheld"].isin(WITHHELD)]
-    # 15 library trials at rates 90-100 %: at least 12 named (P(fewer) < 0.2 % at the lowest rates)
-    assert lib["top1_correct"].sum() >= 12, lib[["effect_withheld", "seed", "effect_named", "top3"]]
+    # 15 library trials at rates 67.5/97.5/97.5 %: at least 10 named (P(fewer) = 0.2 %; at least 12, the
+    # earlier threshold for rates of 90-100 %, would fail with 8.5 % at today's transmission rate)
+    assert lib["top1_correct"].sum() >= 10, lib[["effect_withheld", "seed", "effect_named", "top3"]]
     assert lib["top3_correct"].mean() >= 0.9
     named = lib[lib["top1_correct"]]
     assert (named["gap_reduction_pct"] >= 50).all(), named
-    # null case: a false claim in 20 % of trials at most -> at most 3 of 5 (P(more) < 0.7 %)
+    # null case: a false claim in 2.5 % of trials -> at most 1 of 5 (P(more) = 0.6 %)
     null = t[t["effect_withheld"] == "none"]
-    assert (null["effect_named"] != "none").sum() <= 3, null[["seed", "effect_named"]]
+    assert (null["effect_named"] != "none").sum() <= 1, null[["seed", "effect_named"]]
+    assert set(t["category"]) <= {"no significant gap", "explained", "sensor fault", "indistinguishable",
+                                  "partly explained", "not in the library"}
     # out-of-library VE resonance: the gap is seen (its attribution rate: the next test)
     ool = t[t["effect_withheld"] == OOL_EFFECT]
     assert ool["gap_before"].median() > null["gap_before"].median() + 0.5
 
 
-@pytest.mark.xfail(strict=False, reason=(
-    "Known gap: with the 1D gas exchange the out-of-library VE resonance is attributed to "
-    "intake_air_temperature in 2 of these 5 seeds (lumped model: <= 2.5 % of trials).  A VE bump over "
-    "speed projects onto the charge-temperature direction of the linearisation; telling a structural "
-    "residual from a library effect is the gap-beyond-its-library work.  Not strict: 1 of 5 on another "
-    "build would pass, and the rate itself is not yet measured on enough seeds to state it."))
 def test_out_of_library_effect_is_rarely_attributed(bench):
     res, _ = bench
     t = res["table"]
     ool = t[t["effect_withheld"] == OOL_EFFECT]
-    # claimed rate <= 2.5 % of trials -> at most 1 of 5
+    # claimed in 0 of 40 seeds (< 7.2 % at 95 % confidence) -> at most 1 of 5 (P(more) < 5 % even at that bound)
+    # it is seen, and refused as "partly explained" (what the best candidate leaves is above noise)
     assert (ool["effect_named"] != "none").sum() <= 1, ool[["seed", "effect_named"]]
