@@ -73,7 +73,8 @@ def run(ctx: StageContext, n_noise: int = 200) -> dict:
     paths = write_gap_report(d, ctx.work, notes=notes)
     summary = {"kind": "gap", "package_version": package_version(), "spec_hash": spec.spec_hash(),
                "bench": ctx.bench_source, "created": _dt.datetime.now().isoformat(timespec="seconds"),
-               "named": d.named, "best": d.best, "confidence": d.confidence, "statement": d.statement,
+               "category": d.category, "named": d.named, "best": d.best, "confidence": d.confidence,
+               "statement": d.statement,
                "gap_before_sigma": d.gap_before, "gap_after_sigma": d.gap_after,
                "gap_reduction_pct": d.gap_reduction_pct, "base_theta": info["theta"],
                "overrides": dict(ctx.engine.overrides), "simulations": ev.points,
