@@ -219,7 +219,7 @@ def outside_cases() -> list[OutsideCase]:
             "stage (0.97-0.99 each, Naunheimer et al. 2011 ch. 3). Accepted: the torque-proportional losses "
             "(constant or speed-dependent transmission efficiency, a torque gain error), which the data cannot "
             "tell from it; not blow-by or friction (changes exhaust T / does not grow with load).",
-            frozenset({"transmission_efficiency", "transmission_speed_loss", sens + "brake_torque_nm"}),
+            frozenset({"transmission_efficiency", "transmission_speed_loss"}),
             refusal_ok=True, readings=torque_load_loss),
         OutsideCase(
             "ve_dip_10k", "functional form",
@@ -266,9 +266,10 @@ def outside_cases() -> list[OutsideCase]:
             "Torque offset -1.5 Nm: load-cell zero drift / arm tare not zeroed (2.5 % at 60 Nm, 5 % at 30 Nm). "
             "To the data this is exactly a constant-FMEP friction change (brake torque = eta (indicated - "
             "FMEP Vd / 4 pi): -1.5 Nm = +0.31 bar on the Chen-Flynn A term, inside the friction candidate's "
-            "range), so friction is accepted too and the case is not a must-name sensor fault. (A torque GAIN "
+            "range), so friction is the accepted answer (the diagnosis has no torque fault candidate for this "
+            "reason) and the case is not a must-name sensor fault. (A torque GAIN "
             "fault is left out for the same reason: it is the transmission efficiency to the data.)",
-            frozenset({sens + "brake_torque_nm", "friction"}), readings=sensor_offset("brake_torque_nm", -1.5),
+            frozenset({"friction"}), readings=sensor_offset("brake_torque_nm", -1.5),
             channel="brake_torque_nm"),
         OutsideCase(
             "lumped_gas_exchange", "structural",
