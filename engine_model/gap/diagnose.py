@@ -46,7 +46,7 @@ from engine_model.gap.localise import coded_map, energy_chain, field_fit, region
 from engine_model.gap.covariance import null_base_residuals
 from engine_model.gap.verdict import param_text, rivals_of_another_kind, verdict_statement
 from engine_model.gap.residuals import UNCERTAINTY, align_measured, check_bench_outputs, sigma_of
-from engine_model.gap.sensors import SENSOR_STAGE, candidate, is_sensor, sensor_channel, with_sensor_faults
+from engine_model.gap.sensors import SENSOR_STAGE, candidate, is_sensor, with_sensor_faults
 
 __all__ = ["diagnose", "GapDiagnosis", "CHAIN_STAGE", "NO_CANDIDATE", "param_text", "CATEGORIES",
            "BASE_PRIOR_SD"]

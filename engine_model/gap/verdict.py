@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pandas as pd
 
+from engine_model.gap.localise import CHAIN_T_MIN
 from engine_model.gap.sensors import is_sensor, sensor_channel
 
 __all__ = ["verdict_statement", "param_text", "kind_of", "rivals_of_another_kind"]
@@ -112,7 +112,7 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
             f"{r.stage} {r.mean_pct:+.1f} +- {r.se_pct:.1f} %" for r in booked.itertuples()) + ".")
     tot = chain[chain["stage"] == "brake at dyno (total)"]
     if len(tot) and "booked" in tot.columns and not bool(tot["booked"].iloc[0]):
-        off = ch[(ch["t"] >= 3.0)]["stage"].tolist() if "t" in ch.columns else []
+        off = ch[(ch["t"] >= CHAIN_T_MIN)]["stage"].tolist() if "t" in ch.columns else []
         if off:
             parts.append("Torque agrees with the model within noise, so no share of a torque gap is booked; the "
                          f"residual behind {', '.join(off)} is not a torque loss (a reading, or effects that "

@@ -161,9 +161,14 @@ def test_prior_rows_are_fitted_but_never_held_out():
     assert prob.n_obs == prob.r.size - n_prior
     _, res = heldout(prob, None, folds)
     assert np.all(res[prob.point < 0] == 0)
-    # without the prior the base-only held-out chi2 of these data differs (the prior enters the fits)
+    # the prior enters the fits: without it the same data give another base and no pseudo-observation
+    # for the base; a 1000-times tighter prior pins the base at the DOE prior (theta 0)
     d0 = diagnose(lin, m, n_noise=50, seed=0, base_prior_sd=None)
     assert d0.extra["problem"].n_obs == prob.n_obs
+    assert int(np.count_nonzero(d0.extra["problem"].point < 0)) == n_prior - len(lin.base.params)
+    assert d0.base_theta["bdur_offset_deg"] != pytest.approx(d.base_theta["bdur_offset_deg"], abs=1e-9)
+    tight = diagnose(lin, m, n_noise=50, seed=0, base_prior_sd={p: s / 1000 for p, s in BASE_PRIOR_SD.items()})
+    assert abs(tight.base_theta["bdur_offset_deg"]) < 0.05 < abs(d0.base_theta["bdur_offset_deg"])
 
 
 def test_energy_chain_books_no_share_when_torque_agrees():
