@@ -53,14 +53,14 @@ __all__ = ["diagnose", "GapDiagnosis", "CHAIN_STAGE", "NO_CANDIDATE", "param_tex
 
 NO_CANDIDATE = "no candidate in the library explains it"
 
-#: Answer categories of :func:`diagnose`, in the order the rule tests them.
+#: Answer categories of :func:`diagnose`.
 #:
-#: * ``no significant gap``: the base's held-out residual is consistent with noise and no candidate beats
-#:   the noise threshold;
+#: * ``no significant gap``: the base's held-out residual is consistent with noise and nothing is claimed
+#:   (candidates of two kinds may each beat the noise threshold on such a gap; the verdict lists them);
 #: * ``explained`` / ``sensor fault``: the best candidate (a physical effect / an offset-and-gain fault of
 #:   one measured channel) beats the noise threshold, leaves a held-out residual no larger than pure noise
 #:   leaves (99 % quantile) and none of its parameters sits at the edge of its documented range;
-#: * ``indistinguishable``: as above, but a candidate of another kind (a fault of another channel, or a
+#: * ``indistinguishable``: as above on a gap above noise, but a candidate of another kind (a fault of another channel, or a
 #:   physical effect against a sensor fault) scores within the noise threshold of the best: these data
 #:   cannot say which, and the verdict names them all rather than pick one;
 #: * ``partly explained``: the best candidate beats the noise threshold but leaves more than noise, or
