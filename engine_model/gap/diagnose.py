@@ -19,8 +19,9 @@ Steps of :func:`diagnose`:
    ("explained" / "sensor fault") needs a held-out improvement above the (1 - alpha) quantile of the best
    improvement pure noise produces on the same design, a held-out remainder within what pure noise leaves
    (99 % quantile), no parameter at its range edge, and no candidate of another kind within the noise
-   threshold; otherwise "indistinguishable", "partly explained", "not in the library" or "no significant
-   gap".
+   threshold that the data cannot reject as the truth (a parametric-bootstrap test,
+   :mod:`engine_model.gap.rivals`); otherwise "indistinguishable", "partly explained", "not in the
+   library" or "no significant gap".
 
 "Pure noise" is the error model of :mod:`engine_model.gap.covariance`: the
 measurement uncertainty plus the base's structural error, either in quadrature
@@ -45,6 +46,7 @@ from engine_model.gap.linear import Linearisation
 from engine_model.gap.localise import coded_map, energy_chain, field_fit, region_table, shape_label
 from engine_model.gap.covariance import null_base_residuals
 from engine_model.gap.verdict import param_text, rivals_of_another_kind, verdict_statement
+from engine_model.gap.rivals import RIVAL_ALPHA, rival_p_values
 from engine_model.gap.residuals import UNCERTAINTY, align_measured, check_bench_outputs, sigma_of
 from engine_model.gap.sensors import SENSOR_STAGE, candidate, is_sensor, with_sensor_faults
 
@@ -60,9 +62,10 @@ NO_CANDIDATE = "no candidate in the library explains it"
 #: * ``explained`` / ``sensor fault``: the best candidate (a physical effect / an offset-and-gain fault of
 #:   one measured channel) beats the noise threshold, leaves a held-out residual no larger than pure noise
 #:   leaves (99 % quantile) and none of its parameters sits at the edge of its documented range;
-#: * ``indistinguishable``: as above on a gap above noise, but a candidate of another kind (a fault of another channel, or a
-#:   physical effect against a sensor fault) scores within the noise threshold of the best: these data
-#:   cannot say which, and the verdict names them all rather than pick one;
+#: * ``indistinguishable``: as above on a gap above noise, but a candidate of another kind (a fault of another
+#:   channel, or a physical effect against a sensor fault) scores within the noise threshold of the best and
+#:   the data cannot reject it as the truth (:mod:`engine_model.gap.rivals`, 5 %): the verdict names them all
+#:   rather than pick one (a rival the test rejects does not stand in the way of the claim);
 #: * ``partly explained``: the best candidate beats the noise threshold but leaves more than noise, or
 #:   asks for a parameter at its range edge (a larger or another cause); it is reported, not claimed;
 #: * ``not in the library``: a gap above noise that no candidate reduces by more than noise would; the
@@ -178,7 +181,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
              uncertainty: dict | None = None, error_model: str | ErrorModel = DEFAULT_ERROR_MODEL,
              k_folds: int = 5, alpha: float = 0.05, n_noise: int = 200, seed: int = 0,
              noise_cache: dict | None = None, source: str = "bench", sensor_faults: bool = True,
-             base_prior_sd: dict | None = BASE_PRIOR_SD) -> GapDiagnosis:
+             base_prior_sd: dict | None = BASE_PRIOR_SD, rival_test: bool = True) -> GapDiagnosis:
     """Diagnose the gap between a bench table and the linearised model.
 
     Parameters
@@ -258,6 +261,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     beats = best is not None and rank["heldout_improvement"].iloc[0] > thr
     at_edge = bool(best is not None and rank["at_range_bound"].iloc[0])
     rivals = rivals_of_another_kind(rank, thr) if beats else []
+    # a significant gap whose best fit is adequate: a close rival of another kind stands only if the data
+    # cannot reject it (gap.rivals; below the noise quantile the gap itself is not established, no test)
+    rival_p = {}
+    if rival_test and rivals and resid_ok and not at_edge and ho0 > q_chi2:
+        rival_p = rival_p_values(prob, folds, best, rivals, seed=seed)
+        rivals = [c for c in rivals if rival_p[c] >= RIVAL_ALPHA]
     claimed = best if beats and resid_ok and not at_edge and not rivals else None
     if claimed:
         category = "sensor fault" if is_sensor(claimed) else "explained"
@@ -280,7 +289,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     if len(stages):
         stages["beats_noise"] = stages["best_heldout_improvement"] > thr
     statement = verdict_statement(category, claimed, best, rank, thr, gap_before, gap_after, reduction, q_chi2, chain,
-                           stages, regions)
+                                  stages, regions, rival_p)
     return GapDiagnosis(named=claimed, statement=statement, confidence=conf, ranking=rank, residuals=resid,
                         field=fld, shape=shape, chain=chain, stages=stages, gap_before=gap_before,
                         gap_after=gap_after, gap_reduction_pct=reduction, threshold=thr, noise_chi2_q=q_chi2,
@@ -291,7 +300,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         n_points=int(su.point_valid.sum()), n_obs=int(nobs), excluded=su.excluded, best=best,
                         category=category, regions=regions,
                         extra={"indistinguishable": ([best] + rivals) if category == "indistinguishable" else [],
-                               "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise, "error_model": em.name,
+                               "rival_p": rival_p, "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise, "error_model": em.name,
                                "noise_mean_best_improvement": noise_best, "outputs": su.outputs,
                                # for a later search over pairs of candidates (gap.pairs)
                                "problem": prob, "folds": folds, "linearisation": lin})

@@ -5,6 +5,7 @@ from __future__ import annotations
 import pandas as pd
 
 from engine_model.gap.localise import CHAIN_T_MIN
+from engine_model.gap.rivals import RIVAL_ALPHA
 from engine_model.gap.sensors import is_sensor, sensor_channel
 
 __all__ = ["verdict_statement", "param_text", "kind_of", "rivals_of_another_kind"]
@@ -43,8 +44,14 @@ def _who(name: str) -> str:
 
 def verdict_statement(category: str, claimed: str | None, best: str | None, rank: pd.DataFrame, thr: float,
                       gap_before: float, gap_after: float, reduction: float, q_chi2: float, chain: pd.DataFrame,
-                      stages: pd.DataFrame, regions: pd.DataFrame) -> str:
-    """One paragraph: the category and its evidence, indistinguishable rivals, where, the energy chain."""
+                      stages: pd.DataFrame, regions: pd.DataFrame, rival_p: dict | None = None) -> str:
+    """One paragraph: the category and its evidence, indistinguishable rivals, where, the energy chain.
+
+    ``rival_p``: p-values of the close rivals of another kind that were tested (:mod:`engine_model.gap.rivals`);
+    a rival with p below :data:`~engine_model.gap.rivals.RIVAL_ALPHA` is named as rejected, not as a tie.
+    """
+    rival_p = rival_p or {}
+    rejected = {c: p for c, p in rival_p.items() if p < RIVAL_ALPHA}
     parts = []
     row = rank.iloc[0] if len(rank) else None
     if category == "no significant gap":
@@ -66,7 +73,11 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
         if claimed == "friction":
             parts.append("An offset of the torque meter reads like a change of the friction level (a constant "
                          "torque); only the friction's speed term tells them apart.")
-        close = rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
+        close = [c for c in rank[(rank["rank"] > 1) & (rank["heldout_chi2"] - row["heldout_chi2"] < thr)]["effect"]
+                 if c not in rejected]
+        if rejected:
+            parts.append("Scored within the noise threshold but rejected by a parametric test of each as the truth: "
+                         + ", ".join(f"{_who(c)} (p = {p:.3f})" for c, p in rejected.items()) + ".")
         if len(close):
             parts.append("Not distinguishable from it with these measurements (held-out chi2 within the noise "
                          f"threshold): {', '.join(_who(c) for c in close)}.")
@@ -75,7 +86,7 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
             parts.append(f"Runner-up: {_who(r2['effect'])} (held-out chi2 {r2['heldout_chi2']:.1f} vs "
                          f"{row['heldout_chi2']:.1f}).")
     elif category == "indistinguishable":
-        close = rank[rank["heldout_chi2"] - row["heldout_chi2"] < thr]["effect"]
+        close = [c for c in rank[rank["heldout_chi2"] - row["heldout_chi2"] < thr]["effect"] if c not in rejected]
         parts.append(f"Indistinguishable, not claimed: {' or '.join(_who(c) for c in close)} explain the gap "
                      f"equally well within the noise threshold (best held-out gap {gap_before:.2f} -> "
                      f"{gap_after:.2f} sigma rms, {reduction:.0f} % of the gap above noise); another reading "
