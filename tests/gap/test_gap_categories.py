@@ -186,3 +186,26 @@ def test_energy_chain_books_no_share_when_torque_agrees():
     assert ch.loc["mechanical + transmission", "booked"] and not ch.loc["air in", "booked"]
     assert not ch.loc["indicated (combustion, heat)", "booked"]
     assert ch.loc["mechanical + transmission", "mean_pct"] == pytest.approx(-3.0, abs=0.3)
+
+
+def test_a_close_rival_of_another_kind_is_tested_and_the_verdict_follows_the_test():
+    """An exhaust-T offset of 30-35 K: heat transfer or friction scores within the noise threshold in some trials.  It
+    blocks the claim exactly when the parametric test cannot reject it (p >= 5 %), and the verdict names it
+    as rejected otherwise; over 12 trials the test rejects a rival at least once (measured: 6 of 12, p 0.02-0.04)."""
+    from engine_model.gap.rivals import RIVAL_ALPHA
+    lin = _lin()
+    rejected = 0
+    for off in (30.0, 35.0):
+        for seed in range(6):
+            d = diagnose(lin, _fault(_measure(lin, _delta(lin, None), seed), "exhaust_temp_k", off),
+                         n_noise=100, seed=0)
+            rp = d.extra["rival_p"]
+            standing = [c for c, p in rp.items() if p >= RIVAL_ALPHA]
+            if standing:
+                assert d.category == "indistinguishable" and set(standing) <= set(d.extra["indistinguishable"])
+            elif rp:
+                assert d.category == "sensor fault" and d.named == "sensor_exhaust_temp_k"
+                assert "rejected by a parametric test" in d.statement
+                assert all(f"'{c}' (p = " in d.statement for c in rp)
+                rejected += 1
+    assert rejected >= 1
