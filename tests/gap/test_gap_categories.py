@@ -189,9 +189,10 @@ def test_energy_chain_books_no_share_when_torque_agrees():
 
 
 def test_a_close_rival_of_another_kind_is_tested_and_the_verdict_follows_the_test():
-    """An exhaust-T offset of 30-35 K: heat transfer or friction scores within the noise threshold in some trials.  It
-    blocks the claim exactly when the parametric test cannot reject it (p >= 5 %), and the verdict names it
-    as rejected otherwise; over 12 trials the test rejects a rival at least once (measured: 6 of 12, p 0.02-0.04)."""
+    """An exhaust-T offset of 30-35 K: heat transfer or friction scores within the noise threshold in some
+    trials.  Such a rival blocks the claim exactly when the parametric test cannot reject it (p >= 5 %), and
+    the verdict names it as rejected otherwise; over 12 trials the test rejects a rival at least once
+    (measured: 6 of 12, p 0.02-0.04)."""
     from engine_model.gap.rivals import RIVAL_ALPHA
     lin = _lin()
     rejected = 0
