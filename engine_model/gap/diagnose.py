@@ -300,7 +300,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         n_points=int(su.point_valid.sum()), n_obs=int(nobs), excluded=su.excluded, best=best,
                         category=category, regions=regions,
                         extra={"indistinguishable": ([best] + rivals) if category == "indistinguishable" else [],
-                               "rival_p": rival_p, "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise, "error_model": em.name,
+                               "rival_p": rival_p, "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
+                               "error_model": em.name,
                                "noise_mean_best_improvement": noise_best, "outputs": su.outputs,
                                # for a later search over pairs of candidates (gap.pairs)
                                "problem": prob, "folds": folds, "linearisation": lin})
