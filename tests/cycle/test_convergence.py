@@ -32,6 +32,7 @@ def long_runs(spec):
     return [simulate_point(spec, op, LONG) for op in POINTS]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("i", range(len(POINTS)))
 def test_converged_answer_is_within_tolerance_of_the_periodic_solution(spec, long_runs, i):
     ref, _ = long_runs[i]
@@ -41,6 +42,7 @@ def test_converged_answer_is_within_tolerance_of_the_periodic_solution(spec, lon
         assert row[key] == pytest.approx(ref[key], rel=TOL), key
 
 
+@pytest.mark.slow
 def test_long_run_is_periodic(spec, long_runs):
     """The reference itself: one more plain cycle from its end state changes nothing measurable."""
     for op, (ref, state) in zip(POINTS, long_runs):

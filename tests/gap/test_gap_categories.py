@@ -69,6 +69,7 @@ def test_sensor_columns_are_exact_and_only_touch_their_channel():
     assert candidate("sensor_exhaust_temp_k") is SENSOR_FAULTS["sensor_exhaust_temp_k"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("channel,offset,gain", [("air_mass_flow_kg_h", 0.0, 3.0), ("fuel_mass_flow_kg_h", 0.0, -3.0)])
 def test_a_single_channel_fault_is_named_as_a_sensor_fault_on_that_channel(channel, offset, gain):
     lin = _lin()
@@ -87,6 +88,7 @@ def test_a_single_channel_fault_is_named_as_a_sensor_fault_on_that_channel(chann
     assert sum(c == ("sensor fault", sensor_name(channel)) for c in cats) >= 3, cats
 
 
+@pytest.mark.slow
 def test_a_fault_the_burn_law_can_mimic_is_never_pinned_on_something_else():
     """Torque and exhaust T both move with the burn: a burn shift plus a two-channel effect can copy an
     exhaust-T offset, so the answer may be 'indistinguishable', but the fault is among the named."""
@@ -108,6 +110,7 @@ def test_a_physical_effect_is_not_turned_into_a_sensor_fault():
         assert named.count(effect) >= 2, (effect, named)
 
 
+@pytest.mark.slow
 def test_null_is_no_significant_gap_and_localises_nothing():
     lin = _lin()
     cats, flagged = [], 0
@@ -188,6 +191,7 @@ def test_energy_chain_books_no_share_when_torque_agrees():
     assert ch.loc["mechanical + transmission", "mean_pct"] == pytest.approx(-3.0, abs=0.3)
 
 
+@pytest.mark.slow
 def test_a_close_rival_of_another_kind_is_tested_and_the_verdict_follows_the_test():
     """An exhaust-T offset of 30-35 K: heat transfer or friction scores within the noise threshold in some
     trials.  Such a rival blocks the claim exactly when the parametric test cannot reject it (p >= 5 %), and

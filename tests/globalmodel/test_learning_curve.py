@@ -90,6 +90,7 @@ def test_nearest_feasible_lookup():
     assert (cand["throttle_pct"] >= 20 - 1e-9).all()  # picked from feasible candidates only
 
 
+@pytest.mark.slow
 def test_learning_curve_improves_with_points_and_compares_designs(tmp_path):
     curve = L.learning_curve(None, LAW, sizes=(16, 64), designs=("grid", "d_optimal", "sobol"), seeds=(0, 1),
                              families=("poly",), identify_seeded=lambda s: L.noisy_truth(LAW, 1.0, 0.3, seed=s))
@@ -114,6 +115,7 @@ def test_learning_curve_reports_failed_fits():
     assert np.isnan(curve["rmse_bdur_10_90_deg"].iloc[0]) and "need >= 6" in curve["note"].iloc[0]
 
 
+@pytest.mark.slow
 def test_bench_identify_chain_on_two_points():
     # the real chain (virtual bench -> Wiebe identification) on one runnable and one knock-aborted point, with a
     # coarse 5 x 5 identification grid and the quick solver to keep it to ~30 simulations: the test checks the

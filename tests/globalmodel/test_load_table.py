@@ -26,6 +26,7 @@ def runs():
     return spec, build_load_table(spec, evaluate=evaluate, throttle_pct=THR, speed_rpm=SPD), calls
 
 
+@pytest.mark.slow
 def test_plenum_pressure_rises_with_throttle_and_stays_near_ambient(runs):
     spec, lt, calls = runs
     a = lt.array
