@@ -221,6 +221,9 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     base_prior_sd : dict or None
         Prior standard deviation per base parameter about the DOE prior (:data:`BASE_PRIOR_SD`); None: no
         prior (plain least squares).
+    rival_test : bool
+        Test each close rival of another kind as the truth (:mod:`engine_model.gap.rivals`) before it
+        withholds a claim; False: closeness alone withholds (the p-values are in ``extra["rival_p"]``).
 
     Returns
     -------
