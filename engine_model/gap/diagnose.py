@@ -45,7 +45,7 @@ from engine_model.gap.fitting import (FitProblem, columns_of, fit_all, heldout, 
 from engine_model.gap.linear import Linearisation
 from engine_model.gap.localise import coded_map, energy_chain, field_fit, region_table, shape_label
 from engine_model.gap.covariance import null_base_residuals
-from engine_model.gap.verdict import param_text, rivals_of_another_kind, verdict_statement
+from engine_model.gap.verdict import order_ranking, param_text, rivals_of_another_kind, verdict_statement
 from engine_model.gap.rivals import RIVAL_ALPHA, rival_p_values
 from engine_model.gap.residuals import UNCERTAINTY, align_measured, check_bench_outputs, sigma_of
 from engine_model.gap.sensors import SENSOR_STAGE, candidate, is_sensor, with_sensor_faults
@@ -116,7 +116,7 @@ class GapDiagnosis:
     statement : str
         One-paragraph plain-language verdict.
     confidence : float
-        Held-out likelihood weight of the best candidate among all candidates [0-1].
+        Akaike weight of the named candidate among all candidates [0-1] (Burnham & Anderson 2002).
     ranking : DataFrame
         One row per candidate: fitted parameters +- standard errors, held-out
         chi2 and its reduction, AIC, BIC, signature match, weight, rank.
@@ -475,9 +475,9 @@ def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.nda
         })
     rank = pd.DataFrame(rows)
     if len(rank):
-        rank = rank.sort_values(["heldout_chi2", "bic"]).reset_index(drop=True)
+        rank = order_ranking(rank, thr)
         rank["rank"] = np.arange(1, len(rank) + 1)
-        w = np.exp(-0.5 * (rank["heldout_chi2"] - rank["heldout_chi2"].min()).clip(upper=700))
+        w = np.exp(-0.5 * (rank["aic"] - rank["aic"].min()).clip(upper=700))
         rank["weight"] = w / w.sum()
         rank["beats_noise"] = rank["heldout_improvement"] > thr
     return x0, ho0, rank

@@ -86,9 +86,10 @@ def plot_chain(d: GapDiagnosis, path: Path) -> Path:
 
 
 def plot_ranking(d: GapDiagnosis, path: Path) -> Path:
-    """Held-out chi2 improvement per candidate against the noise threshold."""
+    """Held-out chi2 improvement per candidate against the noise threshold, in the ranking's order (best on
+    top: the lead within the noise threshold ordered by AIC), Akaike weights of 1 % or more at the bars."""
     plt = _plt()
-    r = d.ranking.sort_values("heldout_improvement")
+    r = d.ranking.iloc[::-1]
     fig, ax = plt.subplots(figsize=(8, 0.35 * len(r) + 1.5))
     colors = ["tab:green" if e == d.named else ("tab:orange" if b else "0.6")
               for e, b in zip(r["effect"], r["beats_noise"])]
@@ -97,6 +98,11 @@ def plot_ranking(d: GapDiagnosis, path: Path) -> Path:
     for bar, e in zip(bars, edge):
         if e:
             bar.set_hatch("//")
+    if "weight" in r.columns:
+        for bar, w in zip(bars, r["weight"].to_numpy(float)):
+            if w >= 0.01:
+                ax.annotate(f"w {w:.2f}", (max(bar.get_width(), 0.0), bar.get_y() + bar.get_height() / 2),
+                            xytext=(3, 0), textcoords="offset points", va="center", fontsize=7)
     handles = [ax.axvline(d.threshold, color="k", ls="--", label=f"noise threshold {d.threshold:.1f}")]
     if edge.any():
         from matplotlib.patches import Patch
@@ -104,7 +110,7 @@ def plot_ranking(d: GapDiagnosis, path: Path) -> Path:
         handles.append(Patch(facecolor="white", edgecolor="k", hatch="//", label="a parameter at its range edge"))
     ax.set_xlabel("held-out chi2 improvement over the base model")
     ax.legend(handles=handles, fontsize=8)
-    ax.set_title(f"Candidate ranking (K-fold over operating points): {d.category}")
+    ax.set_title(f"Candidate ranking (K-fold held-out, lead by AIC): {d.category}")
     fig.tight_layout()
     write_figure(fig, path, dpi=100)
     plt.close(fig)

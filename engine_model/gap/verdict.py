@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pandas as pd
 
 from engine_model.gap.localise import CHAIN_T_MIN
@@ -27,6 +28,25 @@ def param_text(name: str, value: float, se: float, prm) -> str:
 def kind_of(name: str) -> str:
     """A sensor fault is its own kind per channel; all physical effects are one kind."""
     return name if is_sensor(name) else "physical effect"
+
+
+def order_ranking(rank: pd.DataFrame, thr: float) -> pd.DataFrame:
+    """Candidates best first: held-out chi2 decides which candidates are in the lead, AIC orders the lead.
+
+    The lead is every candidate whose held-out chi2 is within the noise threshold ``thr`` of the lowest;
+    it is ordered by AIC (in-sample chi2 + 2 k), the rest follows by held-out chi2 (BIC breaks ties).
+    Why: the held-out score is what the threshold is calibrated on, so it says whether a candidate's
+    improvement is real; but two candidates it cannot separate differ by less than the split noise of
+    K-fold cross-validation, and the in-sample likelihood with AIC's parameter penalty compares them on
+    all points at once with lower variance (AIC and leave-one-out cross-validation agree asymptotically,
+    Stone 1977; single K-fold splits add selection variance, Shao 1993).  For candidates of equal size this
+    is the likelihood ratio.  Measured on the in-library benchmark: fewer wrong claims among the torque-only
+    losses (docs/sections/gap.md, results).
+    """
+    rank = rank.sort_values(["heldout_chi2", "bic"]).reset_index(drop=True)
+    lead = (rank["heldout_chi2"] - rank["heldout_chi2"].iloc[0]) < thr
+    order = np.lexsort((np.arange(len(rank)), np.where(lead, rank["aic"].to_numpy(float), 0.0), ~lead.to_numpy()))
+    return rank.iloc[order].reset_index(drop=True)
 
 
 def rivals_of_another_kind(rank: pd.DataFrame, thr: float) -> list[str]:
