@@ -239,13 +239,16 @@ def _derivs(vol, mr, s_step, stage, par, tab, offs, hcoeffs, rsp, fuel_c, ref, e
         # end-gas autoignition (Livengood-Wu integrand (1 - x_b)^d / tau).  Before the spark the whole charge
         # is end gas (its temperature is the cylinder's); from the spark on, the unburned gas follows the
         # variable-cp isentrope through the cylinder pressure from its state at the spark.
-        if tab[T_KWIN, le] > 0.5:
+        # (both Heun stages of a step weighted by the step's share inside the window, so the integral ends
+        # at the window's end angle, not at a grid node)
+        kw = tab[T_KWIN, ls]
+        if kw > 0.0:
             if phase > 1.5 and egs[k, 4] > 0.5:
                 tu = end_gas_temperature(egc[k], egs[k, 0] + egs[k, 1] * math.log(p), egs[k, 2])
                 egs[k, 2] = tu
             else:
                 tu = t
-            acc[base + AC_KNOCK] += egs[k, 3] / ignition_delay(p, tu, par[P_KN_A], par[P_KN_N], par[P_KN_B])
+            acc[base + AC_KNOCK] += kw * egs[k, 3] / ignition_delay(p, tu, par[P_KN_A], par[P_KN_N], par[P_KN_B])
 
     # ---- orifice elements.  Those outside the network first, so that their flows enter the network
     # solve as known pressure rates.

@@ -111,7 +111,7 @@ T_AEV = 3      # exhaust valve effective area [m2]
 T_XB = 4       # Wiebe burned fraction [-]
 T_VMOT = 5     # (V_ivc / V)^gamma_mot for the Woschni motored pressure [-]
 T_PHASE = 6    # 0 gas exchange, 1 closed before SOC, 2 combustion/expansion
-T_KWIN = 7     # 1 inside the knock integration window (IVC .. end gas consumed)
+T_KWIN = 7     # share of the crank step starting here inside the knock window (IVC .. end gas consumed) [0-1]
 NTAB = 8
 
 # ------------------------------------------------------------------ cycle outputs (out array)

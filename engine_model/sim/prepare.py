@@ -163,7 +163,11 @@ def angle_tables(spec: EngineSpec, op: OperatingPoint, nstep: int) -> np.ndarray
         eta_c = spec.losses.combustion_efficiency * spec.charge.combustion_efficiency(op.lam)
         tab[L.T_XB] = eta_c * np.where(a < evo, xb, xb_evo)
         ca_end = wiebe.angle_at_fraction(spec.knock.end_burn_fraction, op.spark_deg_btdc, bdur, op.wiebe_m, op.wiebe_a)
-        tab[L.T_KWIN] = (closed & (a < ca_end)).astype(float)
+        # share of each crank step [a, a + h] inside the window [IVC, min(ca_end, EVO)): the integral ends at
+        # ca_end itself, not at the grid node after it (a whole-step end left a +-1.5 % ripple of the knock index
+        # against spark at a 0.5 deg step, docs/sections/knock.md)
+        h = 720.0 / nstep
+        tab[L.T_KWIN] = np.clip((min(ca_end, evo) - a) / h, 0.0, 1.0)
     v_ivc = kinematics.cylinder_volume(ivc, g.bore_m, g.stroke_m, g.conrod_m, g.compression_ratio)
     tab[L.T_VMOT] = np.where(closed, (v_ivc / vol) ** GAMMA_MOTORED, 0.0)
     burning = closed & (a >= soc_angle) & (not op.motored)

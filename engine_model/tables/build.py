@@ -267,9 +267,13 @@ def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_sa
     # 1.1 %, max 8.2 % both at a 10 deg bound), because most forced moves are knock-limited cells that can only retard
     pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
     lower = np.where(pinned, cells["bench_spark_deg_btdc"].to_numpy(float), lo)
+    # knock-limited cells follow the knock border (a physical limit, steep at low speed) and stay out of the
+    # curvature bound, which is there for the MBT cells' search noise on a flat torque plateau: kept in, the
+    # bound pulled MBT cells next to the border 9-14 deg below MBT on the default map (docs/sections/tables.md)
+    knock_limited = feas & (cells["limited_by"] == "knock").to_numpy()
     spark, sinfo = smooth_table(cells["spark_raw_deg_btdc"].to_numpy(float).reshape(shape),
                                 feas.astype(float).reshape(shape), lower.reshape(shape), upper.reshape(shape),
-                                st.max_second_diff_deg, stencil=~zone1.reshape(shape))
+                                st.max_second_diff_deg, stencil=~(zone1 | knock_limited).reshape(shape))
     # ECU resolution 0.1 deg, rounded down (towards retard: never past the knock border); this exact value is verified
     cells["spark_deg_btdc"] = np.floor(spark.ravel() * 10.0 + 1e-6) / 10.0
     cells["smoothing_shift_deg"] = np.where(feas, cells["spark_deg_btdc"] - cells["spark_raw_deg_btdc"], np.nan)

@@ -288,13 +288,17 @@ class SparkRunner:
 
 # --------------------------------------------------------------------------- knock safety against model uncertainty
 
-#: Finite-difference step of the CA50-offset sensitivity of the knock index [deg]: small against the offsets
-#: (20-70 deg), large against the cycle model's knock-index noise (a 2 deg earlier CA50 changes it by ~5-30 %).
-_PHASING_FD_DEG = 2.0
-#: Gain used when the sensitivity cannot be measured (extra point failed, knock slope not positive): a shift of
-#: the whole burn by 1 deg is then taken as worth 1 deg of spark (knock as a function of phasing alone); the
-#: measured gains on the default R6 map were 0.72-0.97 (10-90 %, median 0.89; docs/sections/knock_uncertainty.md),
-#: so this errs safe.
+#: Half-step of the central difference of the knock index in the CA50 offset [deg] (the burn made this much faster
+#: and slower, BDUR10-90 scaled, m kept).  The cycle model's knock index carries a +-1.5 % ripple against spark at
+#: the maps' 0.5 deg crank step (gone at 0.25 deg; measured at 4000 rpm, 60 % throttle, docs/sections/tables.md), and
+#: its slopes are 0.01-0.05 per deg: a one-sided 2 deg step gave gains of 0.14-3.0 between neighbouring cells and
+#: 1.2 / 2.6 / 1.4 at one cell for 1 / 2 / 4 deg steps.  +-3 deg puts the ripple at ~5 % of the difference.
+_PHASING_FD_DEG = 3.0
+#: Spark window around the border for the knock index's spark slope [deg]: the search's points within it are fitted
+#: by a line in ln K (>= 2 points; else the two points bracketing the border, else all points).
+_SLOPE_WINDOW_DEG = 6.0
+#: Gain used when the sensitivity cannot be measured (extra points failed, knock slope not positive): a shift of
+#: the whole burn by 1 deg is then taken as worth 1 deg of spark (knock as a function of phasing alone).
 _PHASING_GAIN_FALLBACK = 1.0
 
 
@@ -324,10 +328,16 @@ def _phasing_std(model, pts: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _knock_slope(grp: pd.DataFrame, border: float) -> float:
-    """d ln(knock index)/d spark [1/deg] at the border: the two evaluated points that bracket it, else a fit."""
+    """d ln(knock index)/d spark [1/deg] at the border: a line through the evaluated points within
+    ``_SLOPE_WINDOW_DEG`` of it, else the two points that bracket it, else a line through all."""
     g = grp[np.isfinite(grp["knock_index"]) & (grp["knock_index"] > 0)].sort_values("spark_deg_btdc")
     g = g.drop_duplicates("spark_deg_btdc")
     s, k = g["spark_deg_btdc"].to_numpy(float), np.log(g["knock_index"].to_numpy(float))
+    near = np.abs(s - border) <= _SLOPE_WINDOW_DEG + 1e-6
+    if near.sum() >= 2 and np.ptp(s[near]) > 1.0:
+        slope = np.polyfit(s[near], k[near], 1)[0]
+        if slope > 1e-3:
+            return float(slope)
     below, above = s <= border + 1e-6, s > border + 1e-6
     if below.any() and above.any():
         i, j = np.flatnonzero(below)[-1], np.flatnonzero(above)[0]
@@ -346,8 +356,9 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
 
     For each cell with a resolved knock border (``spark_border_deg_btdc`` below spark_max), at the border spark:
     ``sigma`` = 1-sigma of the model's CA50 offset; ``g`` = (d ln K / d earlier CA50) / (d ln K / d spark), the
-    first from one extra simulation with the burn made ``_PHASING_FD_DEG`` faster (BDUR10-90 scaled, m kept),
-    the second from the search's own points around the border; retard = z * sigma * |g| [deg]: the burn error
+    first a central difference from two extra simulations with the burn made ``_PHASING_FD_DEG`` faster and slower
+    (BDUR10-90 scaled, m kept), the second a line through the search's own points within ``_SLOPE_WINDOW_DEG`` of
+    the border; retard = z * sigma * |g| [deg]: the burn error
     has either sign, and which side knocks more depends on the cell (a faster burn advances CA50 but, with the
     knock integral ending at the end-gas burn fraction, also consumes the end gas sooner).  One batched evaluate call
     (stage ``u1``), only for the cells that need it.  Returns columns ``phasing_std_deg, knock_phasing_gain,
@@ -369,34 +380,38 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
     go = np.isfinite(off) & (sig > 0)
     if not go.any():
         return out
-    delta = np.minimum(_PHASING_FD_DEG, 0.5 * off)
-    plan = pts[go].copy()
-    plan.insert(0, "point_id", [f"map-u1-c{int(c):04d}" for c in plan.index])
-    plan["bdur_10_90_deg"] = (b * (off - delta) / off)[go]
-    plan["wiebe_m"] = m[go]
+    delta = np.minimum(_PHASING_FD_DEG, 0.5 * off)[go]
+    base = pts[go].copy()
+    fast, slow = base.copy(), base.copy()
+    fast["bdur_10_90_deg"] = b[go] * (off[go] - delta) / off[go]
+    slow["bdur_10_90_deg"] = b[go] * (off[go] + delta) / off[go]
+    fast["wiebe_m"] = slow["wiebe_m"] = m[go]
+    fast.insert(0, "point_id", [f"map-u1-c{int(c):04d}-fast" for c in base.index])
+    slow.insert(0, "point_id", [f"map-u1-c{int(c):04d}-slow" for c in base.index])
+    plan = pd.concat([fast, slow])
     cols = ["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda", "bdur_10_90_deg", "wiebe_m"]
     res = runner.evaluate(plan[cols].reset_index(drop=True))
     runner.calls += 1
     runner.points += len(plan)
     if len(res) != len(plan):
         raise ValueError(f"evaluate returned {len(res)} rows for a plan of {len(plan)} points")
-    k_fast = pd.to_numeric(res["knock_index"], errors="coerce").to_numpy(float)
+    k = pd.to_numeric(res["knock_index"], errors="coerce").to_numpy(float)
+    n_go = len(base)
+    k_fast, k_slow = k[:n_go], k[n_go:]
     rec = plan.assign(cell=plan.index.to_numpy(), stage="u1").reset_index(drop=True)
     for col in EVAL_COLUMNS:
         rec[col] = res[col].to_numpy() if col in res.columns else np.nan
-    rec["status"] = [f"pessimistic burn (CA50 {d:g} deg earlier) for the knock-uncertainty retard; {s}"
-                     for d, s in zip(delta[go], rec["status"].astype(str))]
+    rec["status"] = [f"burn {w} (CA50 {d:g} deg {e}) for the knock-uncertainty retard; {s}"
+                     for (w, e), d, s in zip([("faster", "earlier")] * n_go + [("slower", "later")] * n_go,
+                                             np.concatenate([delta, delta]), rec["status"].astype(str))]
     runner.frames.append(rec)
-    for j, c in enumerate(plan.index):
+    for j, c in enumerate(base.index):
         grp = ev[ev["cell"] == c]
-        s_b = float(plan.at[c, "spark_deg_btdc"])
-        at = grp[np.isfinite(grp["knock_index"]) & (np.abs(grp["spark_deg_btdc"] - s_b) < 1e-6)]
-        slope = _knock_slope(grp, s_b)
-        k0 = float(at["knock_index"].iloc[0]) if len(at) else math.nan
+        slope = _knock_slope(grp, float(base.at[c, "spark_deg_btdc"]))
         gain = _PHASING_GAIN_FALLBACK
-        if math.isfinite(slope) and k0 > 0 and k_fast[j] > 0 and math.isfinite(k_fast[j]):
-            # magnitude: an error of either sign is as likely; > 3 deg/deg is not physical here
-            gain = float(np.clip(abs(math.log(k_fast[j] / k0)) / delta[go][j] / slope, 0.0, 3.0))
+        if math.isfinite(slope) and k_fast[j] > 0 and k_slow[j] > 0 and math.isfinite(k_fast[j] * k_slow[j]):
+            # central difference; magnitude: an error of either sign is as likely; > 3 deg/deg is not physical here
+            gain = float(np.clip(abs(math.log(k_fast[j] / k_slow[j])) / (2.0 * delta[j]) / slope, 0.0, 3.0))
             out.at[c, "knock_phasing_gain_measured"] = True
         out.at[c, "knock_phasing_gain"] = gain
         out.at[c, "knock_uncertainty_border_retard_deg"] = z * float(out.at[c, "phasing_std_deg"]) * gain

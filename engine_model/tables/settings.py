@@ -56,9 +56,11 @@ class MapSettings:
         Verification rounds that retard cells found knocking.
     max_second_diff_deg : float
         Bound on |second difference| of the spark table along either axis
-        (per breakpoint, feasible cells) [deg].  Default 10: on the default R6
-        map it moves feasible cells by 2.8 deg RMS (7.6 max) at a mean torque
-        cost of 1.1 %; 6 deg costs 1.4 % (measured, docs/sections/maps.md).
+        (per breakpoint) among feasible cells not limited by knock [deg];
+        knock-limited cells follow their border.  Default 10: on the default
+        R6 map the MBT cells then need no shift at all (with the knock-limited
+        cells inside the bound it moved MBT cells by up to 14 deg and cost
+        0.8-1.3 % torque on average; docs/sections/tables.md).
     start_retard_deg : float
         Retard of the starting map from the built map [deg]; the paper
         recommends 10-15 deg [P].
@@ -77,11 +79,12 @@ class MapSettings:
         angle at the border (its ``ca50_offset_deg_std``, else the delta method
         on ``bdur_10_90_deg_std`` and ``wiebe_m_std``, errors independent), ``g``
         the spark retard that offsets a 1 deg earlier CA50 at equal knock index,
-        measured per cell by one extra simulation (a faster burn raises the
-        knock index: docs/sections/knock_uncertainty.md).  Default 1 (one-sided
+        measured per cell by two extra simulations (the burn 3 deg faster and
+        slower; docs/sections/tables.md).  Default 1 (one-sided
         84 %): on the default pipeline's model it cut the cells where the truth
         engine knocks at the table spark from 25 to 6 of 80 at a 10 % mean
-        torque cost; 1.64 removed them all at 25 % (measured, same section).
+        torque cost; 1.64 removed them all at 25 % (measured with the earlier
+        one-sided gain, docs/history/knock_uncertainty.md).
         0 ignores the uncertainty; models without ``*_std`` outputs get none.
     """
 

@@ -113,3 +113,38 @@ def test_octane_index_and_multiplier_enter_as_documented():
 def test_mon_above_ron_is_refused():
     with pytest.raises(ValueError, match="motor_octane"):
         default_spec().with_values({"knock.motor_octane": 99.0})
+
+
+# ----------------------------------------------------------------- the integral's end and the crank grid
+
+def test_knock_window_covers_ivc_to_its_end_angle_exactly():
+    """The window table holds each crank step's share inside [IVC, min(CA at the end-gas fraction, EVO)): its sum
+    times the step is that length to rounding, for a spark on and off the grid (a whole-step window would be off
+    by up to one step)."""
+    from engine_model import wiebe
+    from engine_model.cycle import layout as L
+    from engine_model.sim.prepare import angle_tables
+    spec = default_spec()
+    nstep = 1440
+    ivc = spec.intake_valves.open_deg + spec.intake_valves.duration_deg
+    for spark in (30.0, 30.25, 30.4):
+        op = OperatingPoint(speed_rpm=4000.0, throttle_pct=60.0, spark_deg_btdc=spark, lam=1.0,
+                            bdur_10_90_deg=18.6, wiebe_m=5.4)
+        tab = angle_tables(spec, op, nstep)
+        bdur = wiebe.bdur_10_90_to_bdur(op.bdur_10_90_deg, op.wiebe_m, op.wiebe_a)
+        end = min(wiebe.angle_at_fraction(spec.knock.end_burn_fraction, spark, bdur, op.wiebe_m, op.wiebe_a),
+                  spec.exhaust_valves.open_deg)
+        assert tab[L.T_KWIN].sum() * 720.0 / nstep == pytest.approx(end - (ivc - 720.0), abs=1e-9)
+        assert ((tab[L.T_KWIN] > 0) & (tab[L.T_KWIN] < 1)).sum() <= 1      # one partial step at most
+
+
+def test_knock_index_is_smooth_in_spark_at_the_maps_crank_step():
+    """Sparks 0.25 deg apart at the maps' 0.5 deg step, burn held fixed: ln K departs from a straight line by
+    < 0.3 % (measured 0.06 %).  With the integral ending at the grid node after the end angle it zig-zagged
+    by +-1.5 %, comparable to what a 2-3 deg burn change does, so per-cell sensitivities were noise."""
+    sparks = 30.0 + 0.25 * np.arange(9)
+    plan = pd.DataFrame({"point_id": [f"s{i}" for i in range(9)], "speed_rpm": 4000.0, "throttle_pct": 60.0,
+                         "spark_deg_btdc": sparks, "lambda": 1.0, "bdur_10_90_deg": 18.6, "wiebe_m": 5.4})
+    k = simulate(default_spec(), plan, SolverSettings(step_deg=0.5))["knock_index"].to_numpy(float)
+    resid = np.log(k) - np.polyval(np.polyfit(sparks, np.log(k), 1), sparks)
+    assert np.abs(resid).max() < 0.003, resid
