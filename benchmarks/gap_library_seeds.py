@@ -39,8 +39,8 @@ def seed_range(text: str) -> range:
 def rediagnose(prepared: dict, seeds: range) -> pd.DataFrame:
     cache: dict = {}
     rows = []
-    for (eff, _mag), truth in prepared["truth"].items():
-        lin = prepared["linearisations"][(eff, _mag)]
+    for (eff, mag), truth in prepared["truth"].items():
+        lin = prepared["linearisations"][(eff, mag)]
         for s in seeds:
             d = diagnose(lin, apply_noise(truth, NoiseModel(), 1000 + s), k_folds=5, n_noise=200, seed=0,
                          noise_cache=cache)
