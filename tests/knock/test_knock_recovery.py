@@ -1,7 +1,8 @@
-"""The knock calibration against a virtual knock bench whose truth has another structure (slow: ~560 cycles).
+"""The knock calibration against a virtual knock bench whose truth has another structure (slow: ~700 cycles).
 
-Seeds 201-205 are not the benchmark's (101-110, benchmarks/knock_recovery.py) and were not used to set
-anything; the truth's constants were fixed before any trial.
+Seeds 201-240 are not the benchmark's (101-130, benchmarks/knock_recovery.py) and were not used to set
+anything; the truth's constants were fixed before any trial.  The simulations are shared by all seeds (each
+seed only redraws the bench's knock detection and torque noise), so 40 seeds cost little more than one.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ from engine_model import default_spec
 from engine_model.knock.recovery import prepare, trial
 
 pytestmark = pytest.mark.slow
-SEEDS = (201, 202, 203, 204, 205)
+SEEDS = tuple(range(201, 241))
 
 
 @pytest.fixture(scope="module")
@@ -27,16 +28,27 @@ def test_sweeps_stay_within_forty_bench_points(trials):
     assert all(t["evidence"] == "two-sided" for t in trials)
 
 
-def test_calibrated_border_recovers_the_hidden_truth(trials):
-    """Spark at the median multiplier within 2 deg of the truth's at >= 90 % of the 30 cells.
+def test_a_sweep_knocking_at_its_start_is_retarded_until_it_runs_clean(trials):
+    """Every sweep that knocks at its first step brackets its border (before: 4 retard steps, and the 3000 rpm
+    sweeps, started 24 deg past the truth's border, knocked on every row they ran)."""
+    assert all(t["unbracketed_sweeps"] == 0 for t in trials), [t["unbracketed_sweeps"] for t in trials]
 
-    Measured pass rate: 3 of 5 here (93, 93, 93, 83, 83 % of cells), 9 of 10 on the benchmark's seeds
-    (83-97 %): 12 of 15 seeds.  The misses are the knock-limited cells at 3000 rpm, where the truth's
-    two-branch delay and the model's single Arrhenius line differ by more than one multiplier can absorb
-    (docs/sections/knock.md).  Asserted: the rate seen (>= 3 of 5) and no seed below 80 %.
+
+def test_calibrated_border_recovers_the_hidden_truth(trials):
+    """Spark at the median multiplier within 2 deg of the truth's at >= 90 % of the 30 cells, on most seeds.
+
+    Measured: 32 of 40 seeds here (83-97 % of cells; 201-205 alone gave 1 of 5), 22 of 30 on the benchmark's
+    seeds 101-130.  The misses are one cell family or the other: a multiplier drawn low (0.71) puts the 9000 rpm
+    WOT borders 2.4-4.3 deg early, one drawn high (0.79) the 3000 rpm borders 2.3-5.7 deg late, because the
+    multiplier that puts the model's border on the truth's is 0.64-0.72 at 3000 rpm and 0.78-0.79 at 9000 rpm WOT
+    (the truth's two-branch delay against one Arrhenius line; docs/sections/knock.md).  With the bench's
+    retard steps capped at four (the 3000 rpm sweeps never ran clean) it was 24 of 40.  Asserted: >= 70 % of
+    the seeds (28 of 40; the seeds are fixed and the multiplier's posterior moves in steps, so the figure is
+    reproducible; on fresh seeds a rate near 75 % would fall below 70 % of 40 with probability ~20 %) and no
+    seed below 80 %.
     """
     within = [t["within_tol_pct"] for t in trials]
-    assert sum(w >= 90.0 for w in within) >= 3 and min(within) >= 80.0, within
+    assert sum(w >= 90.0 for w in within) >= 0.7 * len(within) and min(within) >= 80.0, within
 
 
 def test_table_multiplier_is_safe_on_the_truth_and_costs_little_torque(trials):
