@@ -5,7 +5,8 @@
 Prints, per noise seed, the bench points the knock sweeps used, the fitted multipliers, the share of grid
 cells (3000-13000 rpm x 20-100 % throttle) whose spark at the median multiplier is within 2 deg of the
 truth's (all cells, and the knock-limited ones), and for the table's multiplier the cells that knock on
-the truth and the torque against the truth's best knock-safe torque; then the pass rate.
+the truth and the torque against the truth's best knock-safe torque; then the pass rate; last, the fitted
+speed slope b of the two-parameter multiplier (ln m = a + b ln(n/6000)) and its recovery share.
 The seeds were not used to set anything (the truth's constants were set before the first trial).
 """
 
@@ -40,17 +41,20 @@ def main() -> None:
     print(f"simulations: {len(data.plan) * 2 + len(data.grid)} in {time.perf_counter() - t0:.0f} s")
     res = [trial(data, s) for s in range(lo, hi + 1)]
     print(f"{'seed':>5} {'pts':>4} {'knk':>4} {'m_med':>6} {'m_tab':>6} {'within2':>8} {'kl_cells':>8} "
-          f"{'kl_within2':>10} {'max_err':>7} {'tab_knocks':>10} {'tab_torque':>10}")
+          f"{'kl_within2':>10} {'max_err':>7} {'tab_knocks':>10} {'tab_torque':>10} {'b_speed':>7} {'within2_spd':>11}")
     for r in res:
         print(f"{r['seed']:>5} {r['points']:>4} {r['knocking']:>4} {r['multiplier_median']:>6.3f} "
               f"{r['multiplier_table']:>6.3f} {r['within_tol_pct']:>7.1f}% {r['knock_limited_cells']:>8} "
               f"{r['knock_limited_within_tol_pct']:>9.1f}% {r['max_err_deg']:>7.2f} {r['table_knocks_pct']:>9.1f}% "
-              f"{r['torque_vs_best_safe_mean']:>10.4f}")
+              f"{r['torque_vs_best_safe_mean']:>10.4f} {r['speed_slope']:>7.3f} {r['within_tol_pct_speed_term']:>10.1f}%")
     ok = [r["within_tol_pct"] >= 90.0 for r in res]
     print(f"recovery (median multiplier): seeds with >= 90 % of cells within 2 deg of the truth: {sum(ok)} of "
           f"{len(ok)}; table (2 % quantile): mean cells knocking on the truth "
           f"{np.mean([r['table_knocks_pct'] for r in res]):.1f} %, mean torque / truth's best knock-safe "
           f"{np.mean([r['torque_vs_best_safe_mean'] for r in res]):.4f}")
+    ok2 = [r["within_tol_pct_speed_term"] >= 90.0 for r in res]
+    print(f"with the speed-dependent multiplier (engine_model.knock.speed_term, median): {sum(ok2)} of {len(ok2)} "
+          "seeds with >= 90 % of cells within 2 deg")
 
 if __name__ == "__main__":
     main()

@@ -10,7 +10,8 @@
    burns of those rows (identification taken as exact here: it is tested on its own) and fits the
    delay multiplier (:func:`engine_model.knock.calibrate_knock`);
 4. on a grid of cells: recovery = the spark min(MBT, border) of the calibrated model at its median
-   multiplier (fastest cycles' index 1) against the truth's (its onset index); the table = the same
+   multiplier (fastest cycles' index 1) against the truth's (its onset index), also with the speed-dependent
+   multiplier of :mod:`engine_model.knock.speed_term` (``within_tol_pct_speed_term``); the table = the same
    at the table's multiplier (predictive 2 % quantile): does it knock on the truth, and its torque
    against the truth's best knock-safe torque.
 
@@ -30,6 +31,7 @@ from engine_model.bench.burnlaw import BurnLaw
 from engine_model.bench.knock_truth import KnockTruth, simulate_with_truth
 from engine_model.knock.calibrate import calibrate_knock, point_evidence
 from engine_model.knock.plan import knock_sweep_plan
+from engine_model.knock.speed_term import calibrate_knock_speed
 from engine_model.sim.prepare import SolverSettings
 from engine_model.spec import EngineSpec
 
@@ -154,6 +156,7 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
     res = pd.concat([data.plan_results.loc[idx], data.ahead_results.loc[idx]], ignore_index=True)
     ev = point_evidence(run.assign(point_id=pid.to_numpy()), plan, res, 1.0, data.advance)
     kc = calibrate_knock(ev)
+    ks = calibrate_knock_speed(ev)
     rows = []
     for c, g in data.grid.groupby("cell"):
         g = g.sort_values("spark_deg_btdc")
@@ -172,11 +175,13 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
         sp_t = float(np.clip(min(mbt, b_t), s[0], s[-1]))
         sp_med = float(np.clip(min(mbt, b_med), s[0], s[-1]))
         sp_tab = float(np.clip(min(mbt, b_tab), s[0], s[-1]))
+        b_spd = _crossing(s, k_model / ks.multiplier_median(float(g["speed_rpm"].iloc[0])), 1.0)
+        sp_spd = float(np.clip(min(mbt, b_spd), s[0], s[-1]))
         safe = k_truth < data.truth.onset_index
         best_safe = float(np.max(tq[safe])) if safe.any() else math.nan
         rows.append({"cell": c, "speed_rpm": g["speed_rpm"].iloc[0], "throttle_pct": g["throttle_pct"].iloc[0],
                      "mbt": mbt, "border_truth": b_t, "border_median": b_med, "border_table": b_tab,
-                     "spark_truth": sp_t, "spark_median": sp_med, "spark_table": sp_tab,
+                     "spark_truth": sp_t, "spark_median": sp_med, "spark_table": sp_tab, "spark_speed_term": sp_spd,
                      "knock_limited": (b_t < mbt) or (b_med < mbt),
                      "table_knocks_on_truth": bool(np.interp(sp_tab, s, k_truth) >= data.truth.onset_index),
                      "torque_ratio": float(np.interp(sp_tab, s, tq)) / best_safe if best_safe > 0 else math.nan})
@@ -192,5 +197,8 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
             "knock_limited_cells": int(kl.sum()),
             "knock_limited_within_tol_pct": 100.0 * float((err[kl] <= tol_deg).mean()) if kl.any() else math.nan,
             "max_err_deg": float(err.max()),
+            "within_tol_pct_speed_term": 100.0 * float(((cells["spark_speed_term"] - cells["spark_truth"]).abs()
+                                                        <= tol_deg).mean()),
+            "speed_slope": ks.slope()[0],
             "table_knocks_pct": 100.0 * float(cells["table_knocks_on_truth"].mean()),
             "torque_vs_best_safe_mean": float(cells["torque_ratio"].mean()), "table": cells}

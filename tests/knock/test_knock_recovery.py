@@ -51,6 +51,19 @@ def test_calibrated_border_recovers_the_hidden_truth(trials):
     assert sum(w >= 90.0 for w in within) >= 0.7 * len(within) and min(within) >= 80.0, within
 
 
+def test_a_speed_dependent_multiplier_recovers_the_truth_on_almost_every_seed(trials):
+    """The second knock parameter (ln m = a + b ln(n/6000), engine_model.knock.speed_term) on the same bench rows.
+
+    Measured: 38 of 40 seeds here with >= 90 % of cells within 2 deg (one multiplier: 32), 94 of 100 on the
+    benchmark's seeds 101-200 (one multiplier: 78).  Its prior and reference speed were set before any trial.
+    Asserted: >= 85 % of the seeds (34 of 40; a rate near 94 % falls below with probability ~2 %) and at least
+    as many seeds as the one multiplier.
+    """
+    one = sum(t["within_tol_pct"] >= 90.0 for t in trials)
+    two = sum(t["within_tol_pct_speed_term"] >= 90.0 for t in trials)
+    assert two >= 0.85 * len(trials) and two >= one, (one, two, [t["within_tol_pct_speed_term"] for t in trials])
+
+
 def test_table_multiplier_is_safe_on_the_truth_and_costs_little_torque(trials):
     assert np.mean([t["table_knocks_pct"] for t in trials]) <= 2.0
     assert np.mean([t["torque_vs_best_safe_mean"] for t in trials]) >= 0.95
