@@ -41,12 +41,15 @@ def main() -> None:
     print(f"simulations: {len(data.plan) * 2 + len(data.grid)} in {time.perf_counter() - t0:.0f} s")
     res = [trial(data, s) for s in range(lo, hi + 1)]
     print(f"{'seed':>5} {'pts':>4} {'knk':>4} {'m_med':>6} {'m_tab':>6} {'within2':>8} {'kl_cells':>8} "
-          f"{'kl_within2':>10} {'max_err':>7} {'tab_knocks':>10} {'tab_torque':>10} {'b_speed':>7} {'within2_spd':>11}")
+          f"{'kl_within2':>10} {'max_err':>7} {'tab_knocks':>10} {'tab_torque':>10} {'b_speed':>7} {'within2_spd':>11} "
+          f"{'used':>5} {'tab2_knocks':>11} {'tab2_torque':>11}")
     for r in res:
         print(f"{r['seed']:>5} {r['points']:>4} {r['knocking']:>4} {r['multiplier_median']:>6.3f} "
               f"{r['multiplier_table']:>6.3f} {r['within_tol_pct']:>7.1f}% {r['knock_limited_cells']:>8} "
               f"{r['knock_limited_within_tol_pct']:>9.1f}% {r['max_err_deg']:>7.2f} {r['table_knocks_pct']:>9.1f}% "
-              f"{r['torque_vs_best_safe_mean']:>10.4f} {r['speed_slope']:>7.3f} {r['within_tol_pct_speed_term']:>10.1f}%")
+              f"{r['torque_vs_best_safe_mean']:>10.4f} {r['speed_slope']:>7.3f} {r['within_tol_pct_speed_term']:>10.1f}% "
+              f"{'yes' if r['speed_term_used'] else 'no':>5} {r['table_speed_term_knocks_pct']:>10.1f}% "
+              f"{r['torque_vs_best_safe_mean_speed_term']:>11.4f}")
     ok = [r["within_tol_pct"] >= 90.0 for r in res]
     print(f"recovery (median multiplier): seeds with >= 90 % of cells within 2 deg of the truth: {sum(ok)} of "
           f"{len(ok)}; table (2 % quantile): mean cells knocking on the truth "
@@ -55,6 +58,11 @@ def main() -> None:
     ok2 = [r["within_tol_pct_speed_term"] >= 90.0 for r in res]
     print(f"with the speed-dependent multiplier (engine_model.knock.speed_term, median): {sum(ok2)} of {len(ok2)} "
           "seeds with >= 90 % of cells within 2 deg")
+    print(f"the table as the maps stage builds it (speed term where the data support it: "
+          f"{sum(r['speed_term_used'] for r in res)} of {len(res)} seeds): mean cells knocking on the truth "
+          f"{np.mean([r['table_speed_term_knocks_pct'] for r in res]):.1f} % (worst "
+          f"{max(r['table_speed_term_knocks_pct'] for r in res):.1f} %), mean torque / truth's best knock-safe "
+          f"{np.mean([r['torque_vs_best_safe_mean_speed_term'] for r in res]):.4f}")
 
 if __name__ == "__main__":
     main()

@@ -73,11 +73,13 @@ def maps_arguments(run, throttle=None, speed=None, grid=None, settings=None, ste
     # the run's bench copy pins the cells it ran clean at MBT; its knock evidence feeds the bench report
     bench = run / BENCH_FILE
     evidence = run / "calibration" / "knock_evidence.parquet"
+    cal_summary = run / "calibration" / "summary.json"     # its speed-dependent knock multiplier, if used
     return {"model": str(run / MODEL_FILE), "spec": str(run / ENGINE_FILE), "throttle": throttle, "speed": speed,
             "grid": grid, "settings": {**before, **(settings or {})},
             "step_deg": step_deg if step_deg is not None else rs.get("step_deg"),
             "bench": str(bench) if bench.is_file() else None,
-            "knock_evidence": str(evidence) if evidence.is_file() else None}
+            "knock_evidence": str(evidence) if evidence.is_file() else None,
+            "calibration_summary": str(cal_summary) if cal_summary.is_file() else None}
 
 
 def rebuild_maps(run, out=None, model=None, spec=None, throttle=None, speed=None, grid=None, lambda_table=None,

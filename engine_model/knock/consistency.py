@@ -15,13 +15,15 @@ from engine_model.io import write_figure
 __all__ = ["bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
 
 
-def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier: float) -> pd.DataFrame:
+def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier) -> pd.DataFrame:
     """One row per bench point of the knock evidence (:func:`engine_model.knock.point_evidence`).
 
     ``cells``: the built table's cells (``throttle_pct, speed_rpm, spark_deg_btdc``); the table's value at a
     point is bilinear in (throttle, speed), held at the grid's edges.  ``multiplier``: the delay multiplier of
-    the engine the table was built with (knock index = index at m = 1 / multiplier).
+    the engine the table was built with (knock index = index at m = 1 / multiplier): one value, or one per
+    evidence row (the speed-dependent multiplier at each point's speed).
     """
+    multiplier = np.broadcast_to(np.asarray(multiplier, dtype=float), (len(evidence),))
     th = np.unique(cells["throttle_pct"].to_numpy(float))
     sp = np.unique(cells["speed_rpm"].to_numpy(float))
     def table(col):

@@ -13,7 +13,8 @@
    multiplier (fastest cycles' index 1) against the truth's (its onset index), also with the speed-dependent
    multiplier of :mod:`engine_model.knock.speed_term` (``within_tol_pct_speed_term``); the table = the same
    at the table's multiplier (predictive 2 % quantile): does it knock on the truth, and its torque
-   against the truth's best knock-safe torque.
+   against the truth's best knock-safe torque; ``*_speed_term`` fields: the table as the maps stage builds
+   it, with the speed term's per-speed multiplier where the data support it.
 
 Every simulation is shared: one cycle run gives the model's index and the truth's.
 """
@@ -175,8 +176,12 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
         sp_t = float(np.clip(min(mbt, b_t), s[0], s[-1]))
         sp_med = float(np.clip(min(mbt, b_med), s[0], s[-1]))
         sp_tab = float(np.clip(min(mbt, b_tab), s[0], s[-1]))
-        b_spd = _crossing(s, k_model / ks.multiplier_median(float(g["speed_rpm"].iloc[0])), 1.0)
+        n = float(g["speed_rpm"].iloc[0])
+        b_spd = _crossing(s, k_model / ks.multiplier_median(n), 1.0)
         sp_spd = float(np.clip(min(mbt, b_spd), s[0], s[-1]))
+        # the table with the speed term where the data support it (as the maps stage does), else the one multiplier
+        m_tab2 = float(ks.table_multiplier(n)[0]) if ks.supported else kc.multiplier_table
+        sp_tab2 = float(np.clip(min(mbt, _crossing(s, k_model / m_tab2, 1.0)), s[0], s[-1]))
         safe = k_truth < data.truth.onset_index
         best_safe = float(np.max(tq[safe])) if safe.any() else math.nan
         rows.append({"cell": c, "speed_rpm": g["speed_rpm"].iloc[0], "throttle_pct": g["throttle_pct"].iloc[0],
@@ -184,7 +189,12 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
                      "spark_truth": sp_t, "spark_median": sp_med, "spark_table": sp_tab, "spark_speed_term": sp_spd,
                      "knock_limited": (b_t < mbt) or (b_med < mbt),
                      "table_knocks_on_truth": bool(np.interp(sp_tab, s, k_truth) >= data.truth.onset_index),
-                     "torque_ratio": float(np.interp(sp_tab, s, tq)) / best_safe if best_safe > 0 else math.nan})
+                     "torque_ratio": float(np.interp(sp_tab, s, tq)) / best_safe if best_safe > 0 else math.nan,
+                     "spark_table_speed_term": sp_tab2,
+                     "table_speed_term_knocks_on_truth": bool(np.interp(sp_tab2, s, k_truth)
+                                                              >= data.truth.onset_index),
+                     "torque_ratio_speed_term": float(np.interp(sp_tab2, s, tq)) / best_safe
+                     if best_safe > 0 else math.nan})
     cells = pd.DataFrame(rows)
     # sweeps that knocked at their first step and never ran clean: their border is bounded from one side only
     back = run[run["step"] < 1]
@@ -199,6 +209,8 @@ def trial(data: KnockBenchData, seed: int, tol_deg: float = 2.0) -> dict:
             "max_err_deg": float(err.max()),
             "within_tol_pct_speed_term": 100.0 * float(((cells["spark_speed_term"] - cells["spark_truth"]).abs()
                                                         <= tol_deg).mean()),
-            "speed_slope": ks.slope()[0],
+            "speed_slope": ks.slope()[0], "speed_term_used": bool(ks.supported),
+            "table_speed_term_knocks_pct": 100.0 * float(cells["table_speed_term_knocks_on_truth"].mean()),
+            "torque_vs_best_safe_mean_speed_term": float(cells["torque_ratio_speed_term"].mean()),
             "table_knocks_pct": 100.0 * float(cells["table_knocks_on_truth"].mean()),
             "torque_vs_best_safe_mean": float(cells["torque_ratio"].mean()), "table": cells}

@@ -43,6 +43,8 @@ from engine_model.version import package_version  # noqa: E402
 #: The knock multiplier the tables use: the predictive quantile at which a cell called knock-free knocks with
 #: this probability (the issue's bar for the tables: <= 2 % of cells knocking on the engine).
 KNOCK_PROBABILITY = 0.02
+#: Speed step of the speed term's table multipliers in the summary [rpm] (the maps interpolate in ln n).
+SPEED_TERM_STEP_RPM = 500.0
 AIRFLOW_COLUMNS = ["point_id", "speed_rpm", "air_mass_flow_kg_h_meas", "air_mass_flow_kg_h_sim", "ga_rel_pct"]
 
 
@@ -85,7 +87,7 @@ def run(ctx: StageContext) -> dict:
     cal.plot_eta_relation(eta, iso, relation, figs / "eta_relation.png")
     traces = _pressure_traces(eng.with_values(match.values), meas, params, s, figs)
     t_kn = time.perf_counter()
-    kcal, kplan = _knock_calibration(ctx, meas, params, match, s.step_deg, out, figs)
+    kcal, kplan, kspeed = _knock_calibration(ctx, meas, params, match, s.step_deg, out, figs)
     joint = cal.joint_fit(ident)
     ident_joint = cal.identify_at_eta(ident, joint.eta_by_throttle())
     params_joint = ident_joint.table
@@ -105,7 +107,8 @@ def run(ctx: StageContext) -> dict:
                            "simulations": ev_id.points, "seconds": round(t_id, 1),
                            "eta_trans": s.eta_trans, "per_point": _per_point(params),
                            "search_range": {"bdur_10_90_deg": list(cal.BDUR_RANGE_DEG), "wiebe_m": list(cal.M_RANGE)}},
-        "knock": {**kcal.summary(), "text": kcal.text(), "simulations": len(kplan),
+        "knock": {**kcal.summary(), "text": kcal.text() + _speed_term_text(kspeed), "speed_term": kspeed,
+                  "simulations": len(kplan),
                   "seconds": round(time.perf_counter() - t_kn, 1),
                   "cycle_ca50_advance_deg": eng.knock.cycle_ca50_advance_deg,
                   "octane_index": round(eng.knock.octane_index, 2)},
@@ -174,9 +177,26 @@ def _knock_calibration(ctx, meas, params, match, step_deg, out, figs):
         columns=["knock_index", "brake_torque_nm"])
     evidence = knock.point_evidence(meas, plan, res, eng.knock.delay_multiplier, eng.knock.cycle_ca50_advance_deg)
     kcal = knock.calibrate_knock(evidence, knock_probability=KNOCK_PROBABILITY)
+    kspeed = None
+    if np.isfinite(evidence["ln_ki_cycle_m1"].to_numpy(float)).any():
+        speeds = np.arange(1000.0, eng.geometry.max_speed_rpm + 1.0, SPEED_TERM_STEP_RPM)
+        kspeed = knock.calibrate_knock_speed(evidence).summary(speeds, KNOCK_PROBABILITY)
     write_parquet(evidence, out / "knock_evidence.parquet")
     knock.plot_evidence(kcal, figs / "knock_evidence.png")
-    return kcal, plan
+    return kcal, plan, kspeed
+
+
+def _speed_term_text(term: dict | None) -> str:
+    """One sentence on the speed-dependent multiplier: used by the tables or not, and why."""
+    if not term:
+        return ""
+    lo, hi = term["slope_68"]
+    head = (f"  Speed term ln m = a + b ln(n/{term['reference_speed_rpm']:g} rpm): b = {term['slope_median']:.3g} "
+            f"(68 % {lo:.3g} to {hi:.3g}, posterior sd {term['slope_sd']:.2g} against the prior's "
+            f"{term['slope_prior_sd']:g})")
+    if term["used"]:
+        return head + "; the data inform b, so the tables take the multiplier at each cell's speed."
+    return head + "; the data do not inform b, so the tables keep the one multiplier."
 
 
 _POINT_KEYS = ("point_id", "speed_rpm", "eta_trans", "bdur_10_90_deg", "bdur_10_90_deg_lo", "bdur_10_90_deg_hi",
