@@ -16,7 +16,8 @@ Steps of :func:`diagnose`:
    with a share booked only when significant; a smooth residual field and the shape of the error;
 4. which candidate: each fitted together with the base on training folds (all sparks of an operating
    point in one fold) and scored on the held-out fold; the verdict is one of :data:`CATEGORIES`: a claim
-   ("explained" / "sensor fault") needs a held-out improvement above the (1 - alpha) quantile of the best
+   ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the 99 %
+   quantile pure noise leaves), a held-out improvement above the (1 - alpha) quantile of the best
    improvement pure noise produces on the same design, a held-out remainder within what pure noise leaves
    (99 % quantile), no parameter at its range edge, and no candidate of another kind within the noise
    threshold that the data cannot reject as the truth (a parametric-bootstrap test,
@@ -231,9 +232,10 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
 
     Notes
     -----
-    The claim rule needs the remainder within noise: a candidate that removes most but not all of a gap
-    is reported as "partly explained", never claimed (the earlier rule also claimed one that removed half
-    of the gap above noise, which named a structural difference as the nearest effect at its range edge).
+    The claim rule needs the gap established and the remainder within noise: nothing is claimed while the
+    base's held-out chi2 lies within the pure-noise 99 % quantile ("no significant gap", even when a
+    candidate's improvement beats its own noise threshold), and a candidate that removes most but not all of
+    an established gap is reported as "partly explained", never claimed.
     """
     unc = dict(UNCERTAINTY)
     unc.update(uncertainty or {})
@@ -270,13 +272,15 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     if rival_test and rivals and resid_ok and not at_edge and ho0 > q_chi2:
         rival_p = rival_p_values(prob, folds, best, rivals, seed=seed)
         rivals = [c for c in rivals if rival_p[c] >= RIVAL_ALPHA]
-    claimed = best if beats and resid_ok and not at_edge and not rivals else None
+    # a claim needs an established gap: the base's held-out chi2 above the pure-noise 99 % quantile
+    established = ho0 > q_chi2
+    claimed = best if beats and resid_ok and not at_edge and not rivals and established else None
     if claimed:
         category = "sensor fault" if is_sensor(claimed) else "explained"
+    elif not established:   # also when a candidate, or rivals of two kinds, beat noise on a gap noise could leave
+        category = "no significant gap"
     elif beats and not (resid_ok and not at_edge):
         category = "partly explained"
-    elif ho0 <= q_chi2:     # also when rivals of two kinds each beat noise on a gap that noise could leave
-        category = "no significant gap"
     elif beats:
         category = "indistinguishable"
     else:

@@ -214,3 +214,19 @@ def test_a_close_rival_of_another_kind_is_tested_and_the_verdict_follows_the_tes
                 assert all(f"'{c}' (p = " in d.statement for c in rp)
                 rejected += 1
     assert rejected >= 1
+
+
+def test_nothing_is_claimed_on_a_gap_that_noise_could_leave():
+    """Claim test 0: a planted transmission loss at a fifth of its realistic size.  On every seed a candidate
+    beats the noise threshold of the improvement, but the base's held-out chi2 stays within the pure-noise 99 %
+    quantile: the gap is not established, so nothing is claimed.  (Without test 0 every one of these trials was
+    claimed, half of them as another effect: heat transfer or the restrictor.)  Sensor faults are left out, so
+    no rival of another kind withholds the claim for its own reason."""
+    lin = _lin()
+    for seed in range(4):
+        d = diagnose(lin, _measure(lin, _delta(lin, "transmission_efficiency", scale=0.2), seed), n_noise=100,
+                     seed=0, sensor_faults=False)
+        assert d.extra["heldout_chi2_base"] <= d.noise_chi2_q
+        assert d.ranking["heldout_improvement"].iloc[0] > d.threshold      # a candidate beats noise ...
+        assert d.named is None and d.category == "no significant gap"       # ... but no claim
+        assert "would each reduce it by more than noise alone" in d.statement
