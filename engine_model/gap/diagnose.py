@@ -19,7 +19,7 @@ Steps of :func:`diagnose`:
    ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the 99 %
    quantile pure noise leaves), a held-out improvement above the (1 - alpha) quantile of the best
    improvement pure noise produces on the same design, a held-out remainder within what pure noise leaves
-   (99 % quantile), no parameter at its range edge, and no candidate of another kind within the noise
+   with the same candidate fitted (99 % quantile, :mod:`engine_model.gap.noise`), no parameter at its range edge, and no candidate of another kind within the noise
    threshold that the data cannot reject as the truth (a parametric-bootstrap test,
    :mod:`engine_model.gap.rivals`); otherwise "indistinguishable", "partly explained", "not in the
    library" or "no significant gap".
@@ -42,6 +42,7 @@ import pandas as pd
 
 from engine_model.gap.covariance import DEFAULT_ERROR_MODEL, ErrorModel, get_error_model, whiten_observations
 from engine_model.gap.fitting import (FitProblem, columns_of, fit_all, heldout, make_folds, operating_point_groups)
+from engine_model.gap.noise import expected_noise_chi2, noise_reference
 
 from engine_model.gap.linear import Linearisation
 from engine_model.gap.localise import coded_map, energy_chain, field_fit, region_table, shape_label
@@ -250,7 +251,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     key = (tuple(lin.points["point_id"].astype(str)), tuple(su.pidx), tuple(su.oidx), tuple(folds), tuple(cands),
            k_folds, seed, n_noise, alpha, float(em.burn_scatter_deg), repr(sorted((em.model_error or {}).items())),
            repr(sorted((base_prior_sd or {}).items())))
-    thr, q_chi2, noise_best = _noise_thresholds(prob, folds, cands, key, n_noise, alpha, seed, noise_cache)
+    ref = noise_reference(prob, folds, cands, key, n_noise, alpha, seed, noise_cache)
+    thr, q_chi2, noise_best = ref.threshold, ref.base_chi2_q, ref.mean_best_improvement
     x0, ho0, rank = _rank_candidates(su, lin, thr)
     nobs = prob.n_obs
     gap_before = math.sqrt(ho0 / nobs)
@@ -258,11 +260,13 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     best_ho = float(rank["heldout_chi2"].iloc[0]) if len(rank) else ho0
     gap_after = math.sqrt(best_ho / nobs)
     # gap above noise: the excess of the held-out chi2 over what a pure-noise data set leaves on this design
-    exp_noise = _expected_noise_chi2(prob, folds, seed, noise_cache, key)
+    exp_noise = expected_noise_chi2(prob, folds, seed, noise_cache, key)
     excess0 = max(ho0 - exp_noise, 0.0)
     reduction = 100.0 * (ho0 - best_ho) / excess0 if excess0 > 0 else 0.0
     reduction = float(np.clip(reduction, -999.0, 100.0))
-    resid_ok = best_ho <= q_chi2
+    # the remainder against what noise leaves with the same candidate fitted beside the base (gap.noise)
+    q_rem = ref.remainder_q(best)
+    resid_ok = best_ho <= q_rem
     beats = best is not None and rank["heldout_improvement"].iloc[0] > thr
     at_edge = bool(best is not None and rank["at_range_bound"].iloc[0])
     rivals = rivals_of_another_kind(rank, thr) if beats else []
@@ -295,7 +299,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
               .rename("best_heldout_improvement").reset_index()) if len(rank) else pd.DataFrame()
     if len(stages):
         stages["beats_noise"] = stages["best_heldout_improvement"] > thr
-    statement = verdict_statement(category, claimed, best, rank, thr, gap_before, gap_after, reduction, q_chi2, chain,
+    statement = verdict_statement(category, claimed, best, rank, thr, gap_before, gap_after, reduction, q_rem, chain,
                                   stages, regions, rival_p)
     return GapDiagnosis(named=claimed, statement=statement, confidence=conf, ranking=rank, residuals=resid,
                         field=fld, shape=shape, chain=chain, stages=stages, gap_before=gap_before,
@@ -308,6 +312,7 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         category=category, regions=regions,
                         extra={"indistinguishable": ([best] + rivals) if category == "indistinguishable" else [],
                                "rival_p": rival_p, "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
+                               "remainder_chi2_q": q_rem,
                                "error_model": em.name,
                                "noise_mean_best_improvement": noise_best, "outputs": su.outputs,
                                # for a later search over pairs of candidates (gap.pairs)
@@ -403,25 +408,6 @@ def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em
     return _Setup(outputs=outputs, oi=oi, y=y, yref=yref, sig=sig, valid=valid, point_valid=point_valid,
                   excluded=excluded, pidx=pidx, oidx=oidx, cands=cands, prob=prob, folds=folds, r_sig=r_sig,
                   a_sig=a_sig, u=u, tau=tau)
-
-def _noise_thresholds(prob: FitProblem, folds: np.ndarray, cands: list[str], key: tuple, n_noise: int, alpha: float,
-                      seed: int, noise_cache: dict | None) -> tuple[float, float, float]:
-    """Pure-noise Monte Carlo on the same design: the claim threshold (1 - alpha quantile of the best
-    candidate's held-out improvement), the 99 % quantile of the base's held-out chi2, and the mean best
-    improvement."""
-    if noise_cache is not None and key in noise_cache:
-        return noise_cache[key]
-    rng = np.random.default_rng(seed + 7919)
-    best_d, chi_null = [], []
-    for _ in range(n_noise):
-        e = rng.standard_normal(prob.r.size)
-        c0, _ = heldout(prob, None, folds, e)
-        chi_null.append(c0)
-        best_d.append(max(c0 - heldout(prob, c, folds, e)[0] for c in cands) if cands else 0.0)
-    out = (float(np.quantile(best_d, 1.0 - alpha)), float(np.quantile(chi_null, 0.99)), float(np.mean(best_d)))
-    if noise_cache is not None:
-        noise_cache[key] = out
-    return out
 
 def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.ndarray, float, pd.DataFrame]:
     """Base-only fit and every candidate fitted with the base: held-out chi2, AIC/BIC, signature match.
@@ -556,18 +542,6 @@ def _burn_direction(lin: Linearisation, oi: Sequence[int], sig: np.ndarray) -> n
                          f"linearisation; base: {list(lin.base.params)}")
     u = lin.jac[:, oi, j[0]] / sig
     return np.where(np.isfinite(u) & lin.ok[:, None], u, 0.0)
-
-def _expected_noise_chi2(prob, folds, seed, cache, key) -> float:
-    """Mean held-out chi2 of the base model on pure noise (the 'noise level' of the gap)."""
-    k2 = ("expected",) + key
-    if cache is not None and k2 in cache:
-        return cache[k2]
-    rng = np.random.default_rng(seed + 104729)
-    vals = [heldout(prob, None, folds, rng.standard_normal(prob.r.size))[0] for _ in range(50)]
-    v = float(np.mean(vals))
-    if cache is not None:
-        cache[k2] = v
-    return v
 
 def _regions(su: _Setup, lin: Linearisation, x0: np.ndarray, n_noise: int, seed: int) -> pd.DataFrame:
     """Localisation per output and operating region against pure noise on the same plan (base refitted to
