@@ -19,7 +19,9 @@ are ``sensor_<bench column>``) and whether an honest refusal is itself the right
 Every trial is scored as ``right`` (a claim in ``accept``; for the null: no claim), ``refusal`` (no claim:
 "partly explained", "not in the library" or "no significant gap" while something was withheld) or
 ``wrong_claim`` (a claim outside ``accept``); a wrong claim is ``confident_wrong`` when its fitted parameter
-sits at its range edge or its held-out chi2 exceeds the pure-noise quantile ``GapDiagnosis.noise_chi2_q``.
+sits at its range edge or its held-out chi2 exceeds the pure-noise quantile the claim rule judged it by (with
+the claimed candidate fitted, ``extra["remainder_chi2_q"]``; the base-only ``noise_chi2_q`` for diagnoses
+without it).
 
 Cost: the truths are noiseless and reused across seeds (only the noise is redrawn with the bench's noise
 model, as in the in-library benchmark); reading-side cases cost no simulation, each structural truth one
@@ -350,7 +352,10 @@ def score_diagnosis(case: OutsideCase, d) -> dict:
         outcome = "refusal"
     else:
         outcome = "right" if claimed in case.accept else "wrong_claim"
-    confident = outcome == "wrong_claim" and (bool(at_bound) or (np.isfinite(ho) and ho > d.noise_chi2_q))
+    # the quantile the claim rule judged the remainder by (the claimed candidate fitted beside the base on pure
+    # noise, gap.noise); older diagnoses without it: the base-only quantile
+    q_rem = float(((getattr(d, "extra", None) or {}).get("remainder_chi2_q")) or d.noise_chi2_q)
+    confident = outcome == "wrong_claim" and (bool(at_bound) or (np.isfinite(ho) and ho > q_rem))
     acceptable = outcome == "right" or (outcome == "refusal" and case.refusal_ok)
     hedge = [str(x) for x in ((getattr(d, "extra", None) or {}).get("indistinguishable") or [])] \
         if cat == "indistinguishable" else []
@@ -360,7 +365,8 @@ def score_diagnosis(case: OutsideCase, d) -> dict:
                                          and claimed == f"sensor_{case.channel}"),
             "must_name": case.must_name, "hedge_set": ",".join(hedge),
             "hedge_has_right": bool(set(hedge) & set(case.accept)),
-            "named_heldout_chi2": ho, "noise_chi2_q": float(d.noise_chi2_q), "named_at_range_bound": at_bound}
+            "named_heldout_chi2": ho, "noise_chi2_q": float(d.noise_chi2_q), "remainder_chi2_q": q_rem,
+            "named_at_range_bound": at_bound}
 
 
 # --------------------------------------------------------------------------- the run
