@@ -58,9 +58,9 @@ MODEL_ERROR = {
 #: burn-scatter covariance (1 sigma, in quadrature with the measurement).  Measured on the gap benchmark's
 #: noiseless null case on the default engine (1D gas exchange), the default 32-point plan of
 #: ``mbc gap-plan --points 32`` (2026-11-27; 5040-12355 rpm, 30-100 % throttle) and the map-wide base with
-#: Wiebe m offset: the base residual per point is split into a BDUR10-90 deviation along the point's burn direction (weighted
-#: by the measurement sigma) and a remainder, 0.31 % torque, 2.2 K exhaust temperature, 0.011 % airflow and
-#: 0.010 % fuel flow rms; rounded up here.  (On the plan of 2026-11-26: 0.21 % and 1.5 K.)
+#: Wiebe m offset: the base residual per point is split into a BDUR10-90 deviation along the point's burn
+#: direction (weighted by the measurement sigma) and a remainder, 0.31 % torque, 2.2 K exhaust temperature,
+#: 0.011 % airflow and 0.010 % fuel flow rms; rounded up here.  (On the plan of 2026-11-26: 0.21 % and 1.5 K.)
 #: Measure it again whenever the default plan or the base changes: a remainder set below the base's real
 #: misfit makes a pure-noise gap look established and an exact candidate's remainder look too large.
 MODEL_ERROR_REMAINDER = {

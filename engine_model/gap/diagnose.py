@@ -19,9 +19,9 @@ Steps of :func:`diagnose`:
    ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the 99 %
    quantile pure noise leaves), a held-out improvement above the (1 - alpha) quantile of the best
    improvement pure noise produces on the same design, a held-out remainder within what pure noise leaves
-   with the same candidate fitted (99 % quantile, :mod:`engine_model.gap.noise`), no parameter at its range edge, and no candidate of another kind within the noise
-   threshold that the data cannot reject as the truth (a parametric-bootstrap test,
-   :mod:`engine_model.gap.rivals`); otherwise "indistinguishable", "partly explained", "not in the
+   with the same candidate fitted (99 % quantile, :mod:`engine_model.gap.noise`), no parameter at its range
+   edge, and no candidate of another kind within the noise threshold that the data cannot reject as the
+   truth (a parametric-bootstrap test, :mod:`engine_model.gap.rivals`); otherwise "indistinguishable", "partly explained", "not in the
    library" or "no significant gap".
 
 "Pure noise" is the error model of :mod:`engine_model.gap.covariance`: the
