@@ -53,10 +53,10 @@ def test_no_usable_evidence_is_refused():
 
 def test_tables_use_the_speed_term_only_where_the_data_inform_the_slope():
     a = math.log(0.75)
-    assert calibrate_knock_speed(_evidence((3000.0, 6000.0, 12000.0), a, 0.2)).supported
-    assert not calibrate_knock_speed(_evidence((3000.0,), a, 0.0)).supported
+    assert calibrate_knock_speed(_evidence((3000.0, 6000.0, 12000.0), a, 0.2, per_speed=12)).supported
+    assert not calibrate_knock_speed(_evidence((3000.0,), a, 0.0, per_speed=12)).supported
     # knock-free points only (as Table 2): a bound on the multiplier, nothing on its slope
-    clean = _evidence((8000.0, 9000.0, 10000.0, 11000.0), a, 0.0).assign(knock=False)
+    clean = _evidence((8000.0, 9000.0, 10000.0, 11000.0), a, 0.0, per_speed=6).assign(knock=False)
     assert not calibrate_knock_speed(clean).supported
 
 
