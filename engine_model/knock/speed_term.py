@@ -51,13 +51,17 @@ _LNS_GRID = np.linspace(math.log(0.01), math.log(1.0), 31)
 
 @dataclass(frozen=True)
 class KnockSpeedCalibration:
-    """Grid posterior of (a, b) of ``ln m = a + b ln(n / reference_speed_rpm)`` (scatter marginalised)."""
+    """Grid posterior of (a, b, ln sigma) of ``ln m = a + b ln(n / reference_speed_rpm)`` with the probit scatter sigma."""
 
-    posterior_ab: np.ndarray        # (len(_A_GRID), len(_B_GRID)), sums to 1
+    posterior_abs: np.ndarray       # (len(_A_GRID), len(_B_GRID), len(_LNS_GRID)) grid posterior, sums to 1
     reference_speed_rpm: float
     n_clean: int
     n_knock: int
-    posterior_abs: np.ndarray = None   # (a, b, ln sigma) grid posterior, sums to 1 (the predictive quantile)
+
+    @property
+    def posterior_ab(self) -> np.ndarray:
+        """Posterior of (a, b), the scatter marginalised."""
+        return self.posterior_abs.sum(axis=2)
 
     def _quantile(self, values: np.ndarray, u: float) -> float:
         w = self.posterior_ab.ravel()
@@ -142,8 +146,8 @@ def calibrate_knock_speed(evidence: pd.DataFrame,
         logp = logp + (log_ndtr(arg) if ki else log_ndtr(-arg))
     p3 = np.exp(logp - logp.max())
     p3 /= p3.sum()
-    return KnockSpeedCalibration(posterior_ab=p3.sum(axis=2), reference_speed_rpm=float(reference_speed_rpm),
-                                 n_clean=int((~kn).sum()), n_knock=int(kn.sum()), posterior_abs=p3)
+    return KnockSpeedCalibration(posterior_abs=p3, reference_speed_rpm=float(reference_speed_rpm),
+                                 n_clean=int((~kn).sum()), n_knock=int(kn.sum()))
 
 
 #: Plan column that sets the delay multiplier per row (a ``spec.<section>.<field>`` override of the simulator).
