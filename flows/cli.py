@@ -448,8 +448,9 @@ def main(argv=None) -> int:
     except BaseException as exc:
         if is_stop(exc):
             why = f" ({exc})" if isinstance(exc, KeyboardInterrupt) and str(exc) else ""
-            print(f"\nmbc: interrupted{why}; finished chunks are on disk, run the same command again to resume",
-                  file=sys.stderr)
+            tail = ("" if args.command == "serve" else
+                    "; finished chunks are on disk, run the same command again to resume")
+            print(f"\nmbc: interrupted{why}{tail}", file=sys.stderr)
             return 130
         if isinstance(exc, ValueError):
             print(f"mbc: error: {exc}", file=sys.stderr)

@@ -23,6 +23,7 @@ import os
 from pathlib import Path
 
 from flows import prefect_env  # noqa: F401
+from flows.lifeline import Stop, stop_name
 from flows.run import run_flow
 from flows.sweep import sweep_flow
 
@@ -126,4 +127,10 @@ def serve_deployments(watch: str = "bench_inbox", cron: str | None = None, inter
     # stopped after the runner, so SIGTERM or Ctrl-C (KeyboardInterrupt, flows/lifeline.py) ends `serve`
     # and then the server, instead of leaving the runner polling a server that is gone.
     with prefect_env.prefect_api(verbose=False):
-        serve(*deployments)
+        try:
+            serve(*deployments)
+        except SystemExit as exc:   # Prefect's runner answers SIGTERM with sys.exit(0) once it has started
+            raise Stop("SIGTERM") from exc
+        # serve() returns only when stopped: it catches KeyboardInterrupt (Ctrl-C, or SIGTERM before the
+        # runner took it over) itself.  Say so, so that `mbc serve` ends like every stopped command.
+        raise Stop(stop_name())

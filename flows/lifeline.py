@@ -22,6 +22,7 @@ import ctypes.util
 import os
 import signal
 import sys
+import threading
 
 PR_SET_PDEATHSIG = 1   # linux/prctl.h
 
@@ -46,6 +47,7 @@ def die_with_parent(sig: int = signal.SIGTERM):
 
 
 _SIGNALLED: list[int] = []   # signals seen by stop_signals() in this process
+_HANDLER: list = []          # the handler stop_signals() installed, while it is active
 
 
 def is_stop(exc: BaseException | None) -> bool:
@@ -84,11 +86,38 @@ def stop_signals():
         raise Stop(signal.Signals(signum).name)
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    _HANDLER.append(handler)
     try:
         yield
     finally:
+        _HANDLER.remove(handler)
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def stop_name() -> str:
+    """The name of the first stop signal seen by :func:`stop_signals` (``"stopped"`` if none was)."""
+    return signal.Signals(_SIGNALLED[0]).name if _SIGNALLED else "stopped"
+
+
+def checkpoint() -> None:
+    """A safe point in a long driver loop: a stop whose exception was lost is raised here.
+
+    A signal handler's exception is raised wherever the main thread happens to be; a library that
+    catches everything at that moment (a serialiser converting errors, a clean-up that swallows them)
+    loses it, and the run would go on as if nothing had been asked.  Two guards, both cheap:
+
+    * a stop seen by :func:`stop_signals` and not yet acted on raises :class:`Stop` here;
+    * inside a Prefect flow, Prefect replaces the SIGTERM handler by its own (it raises
+      ``TerminationSignal``, which such a library can lose before anything records it); while
+      :func:`stop_signals` is active, SIGTERM is taken back so that it is recorded like Ctrl-C.
+      Prefect restores the handler it found (ours) when the flow ends.
+    """
+    if _SIGNALLED:
+        raise Stop(stop_name())
+    if _HANDLER and threading.current_thread() is threading.main_thread():
+        if signal.getsignal(signal.SIGTERM) is not _HANDLER[-1]:
+            signal.signal(signal.SIGTERM, _HANDLER[-1])
 
 
 def dask_setup(worker) -> None:   # noqa: ARG001 - Dask's preload hook
@@ -98,8 +127,6 @@ def dask_setup(worker) -> None:   # noqa: ARG001 - Dask's preload hook
     or a SIGTERM (the driver then sends them SIGINT, :func:`hush_workers`).  On SIGINT a worker keeps
     running until closed but stops logging: its reports of a scheduler going away are expected then.
     """
-    import threading
-
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGINT, _quiet_worker)
 

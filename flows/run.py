@@ -29,7 +29,7 @@ from pathlib import Path
 
 from flows import eta, prefect_env
 from flows.evaluate import shared_cluster
-from flows.lifeline import is_stop
+from flows.lifeline import checkpoint, is_stop
 from flows.settings import QUICK, STAGES, RunSettings, settings_from_dict, settings_to_dict  # noqa: F401
 from flows.stages import calibration, gap, maps, model
 from flows.stages.context import BENCH_FILE, ENGINE_FILE, StageContext
@@ -171,6 +171,7 @@ def run_flow(out: str, bench: str | None = None, spec: str | None = None, settin
             expect = _expected_times(rs, len(meas), None if dask_address else workers)
             for name, module in (("calibration", calibration), ("model", model), ("maps", maps), ("gap", gap)):
                 t = time.perf_counter()
+                checkpoint()   # SIGTERM stops like Ctrl-C; a stop a library lost is acted on here (lifeline)
                 if name in rs.stages:
                     if progress:   # the overall line: which stage of how many, time so far, rough time left
                         left = sum(v for k, v in expect.items() if rs.stages.index(k) >= rs.stages.index(name))

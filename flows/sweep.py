@@ -37,7 +37,7 @@ import pandas as pd
 
 from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
 from flows import store
-from flows.lifeline import hush_workers, is_stop
+from flows.lifeline import checkpoint, hush_workers, is_stop
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
@@ -334,6 +334,7 @@ def sweep_flow(plan: str, out: str, spec: str | None = None, step_deg: float = 0
 def _collect(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Path, schema, bar: "Progress",
              counts: dict, failed: dict, timing: dict) -> None:
     """Keep ``window`` chunks in flight; write each finished chunk's part as it arrives (driver side)."""
+    checkpoint()   # SIGTERM stops like Ctrl-C inside the flow too (flows/lifeline.py)
     while len(pending) < window and submit_next():
         pass
     done_iter = dask_as_completed(list(pending), loop=_runner_client().loop)
@@ -344,6 +345,8 @@ def _collect(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Pat
         try:
             c, res, secs = fut.result()
         except Exception as exc:  # noqa: BLE001 - reported in the manifest; a re-run computes it
+            if is_stop(exc):   # a stop that a library wrapped in an ordinary error
+                raise
             failed[c] = f"{type(exc).__name__}: {exc}"
             traceback.print_exception(exc, file=sys.stderr, limit=3)
             bar.update(0)
@@ -359,6 +362,7 @@ def _collect(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Pat
         bar.update(len(res))
         _add_counts(counts, store.summarize(res))
         del res
+        checkpoint()   # a stop whose exception a library lost is acted on once this chunk is on disk
 
 
 def _resume_state(sweep_dir: Path, pts: pd.DataFrame, bounds: list, spec_hash: str, solver_h: str):

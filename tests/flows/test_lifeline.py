@@ -1,0 +1,56 @@
+"""Stops that a library loses are still acted on: the driver's safe points (flows/lifeline.py).
+
+A signal handler's exception is raised wherever the main thread is; code that catches everything at
+that instant loses it.  These tests lose one on purpose and check that the next safe point stops the
+run, and that SIGTERM, replaced by another handler (as Prefect does inside a flow), is taken back.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+
+import pytest
+
+from flows import lifeline
+
+
+@pytest.fixture(autouse=True)
+def _fresh_state(monkeypatch):
+    monkeypatch.setattr(lifeline, "_SIGNALLED", [])   # never leak a recorded stop into other tests
+    monkeypatch.setattr(lifeline, "hush_workers", lambda pids=None: None)
+
+
+def test_a_stop_swallowed_by_a_library_is_raised_at_the_next_safe_point():
+    with lifeline.stop_signals():
+        lifeline.checkpoint()                 # nothing asked yet: no stop
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):             # the handler runs between bytecodes
+                pass
+        except BaseException:                 # noqa: BLE001 - the library that loses it
+            pass
+        with pytest.raises(lifeline.Stop):
+            lifeline.checkpoint()
+        assert lifeline.is_stop(ValueError("anything after a stop counts as one"))
+
+
+def test_sigterm_taken_back_from_another_handler_stops_like_ctrl_c():
+    seen = []
+    with lifeline.stop_signals():
+        ours = signal.getsignal(signal.SIGTERM)
+        signal.signal(signal.SIGTERM, lambda *a: seen.append(a))    # a framework's own bridge
+        lifeline.checkpoint()
+        assert signal.getsignal(signal.SIGTERM) is ours
+        with pytest.raises(lifeline.Stop, match="SIGTERM"):
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):
+                pass
+    assert not seen
+    assert signal.getsignal(signal.SIGTERM) is not ours             # restored on leaving
+
+
+def test_checkpoint_outside_stop_signals_leaves_handlers_alone():
+    before = signal.getsignal(signal.SIGTERM)
+    lifeline.checkpoint()
+    assert signal.getsignal(signal.SIGTERM) is before
