@@ -50,6 +50,11 @@ def prefect_api():
                 os.environ["PREFECT_API_URL"] = old
 
 
+#: Processes a test shares an in-process simulation batch among (``simulate(..., workers=)``): the cores
+#: there are, at most 4 (CI has 2).
+SIM_WORKERS = max(1, min(4, os.cpu_count() or 1))
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -30,7 +30,7 @@ import pandas as pd
 
 from engine_model import wiebe
 from engine_model.sim.prepare import OperatingPoint, SolverSettings
-from engine_model.sim.simulate import simulate_point
+from engine_model.sim.simulate import CHUNKS_PER_WORKER, map_in_processes, simulate_point
 from engine_model.spec import EngineSpec
 
 __all__ = ["KnockTruth", "truth_knock_index", "simulate_with_truth"]
@@ -89,8 +89,17 @@ def truth_knock_index(truth: KnockTruth, trace: np.ndarray, ncyl: int, speed_rpm
 
 
 def simulate_with_truth(spec: EngineSpec, plan: pd.DataFrame, truth: KnockTruth,
-                        solver: SolverSettings = SolverSettings()) -> pd.DataFrame:
-    """Simulate every plan row in this process; add ``knock_index_truth`` (the truth's index) to the results."""
+                        solver: SolverSettings = SolverSettings(), workers: int = 1) -> pd.DataFrame:
+    """Simulate every plan row (each from a cold start); add ``knock_index_truth`` (the truth's index).
+
+    ``workers > 1``: the rows are shared among that many spawned processes
+    (:func:`engine_model.sim.simulate.map_in_processes`); every row is independent, so the result is the same.
+    """
+    if workers > 1 and len(plan) > 1:
+        k = workers * CHUNKS_PER_WORKER
+        frames = [plan.iloc[ix[0]:ix[-1] + 1] for ix in np.array_split(np.arange(len(plan)), k) if len(ix)]
+        parts = map_in_processes(simulate_with_truth, frames, workers, (spec,), (truth, solver))
+        return pd.concat(parts, ignore_index=True)
     ivc = spec.intake_valves.open_deg + spec.intake_valves.duration_deg
     rows = []
     for _, r in plan.iterrows():

@@ -30,7 +30,7 @@ QUICK_SOLVER = SolverSettings(step_deg=1.0, tolerance=1e-2, max_cycles=30)
 
 
 def quick_evaluate(points: pd.DataFrame, spec: EngineSpec | None = None,
-                   solver: SolverSettings = QUICK_SOLVER) -> pd.DataFrame:
+                   solver: SolverSettings = QUICK_SOLVER, workers: int = 1) -> pd.DataFrame:
     """Cheap cycle-model evaluation of plan points (the DOE tools' default ``evaluate``).
 
     Parameters
@@ -41,6 +41,8 @@ def quick_evaluate(points: pd.DataFrame, spec: EngineSpec | None = None,
         Default :func:`engine_model.default_spec`.
     solver : SolverSettings
         Default :data:`QUICK_SOLVER` (3-4x cheaper than the default).
+    workers : int
+        Processes to share the rows among (:func:`engine_model.simulate`).
 
     Returns
     -------
@@ -54,7 +56,7 @@ def quick_evaluate(points: pd.DataFrame, spec: EngineSpec | None = None,
 
     spec = default_spec() if spec is None else spec
     pts = with_combustion(points).reset_index(drop=True)
-    res = simulate(spec, pts, solver=solver)
+    res = simulate(spec, pts, solver=solver, workers=workers)
     failed = res["status"].astype(str).str.startswith("failed").to_numpy()
     if failed.any() and solver.step_deg > 0.5:
         finer = SolverSettings(step_deg=0.5, tolerance=solver.tolerance, max_cycles=solver.max_cycles,

@@ -67,8 +67,8 @@ def _with_burn(df: pd.DataFrame) -> pd.DataFrame:
 
 def prepare(spec: EngineSpec, truth: KnockTruth = KnockTruth(), speeds=range(3000, 13001, 2000),
             throttles=(20, 40, 60, 80, 100), sparks=np.arange(0.0, 61.0, 3.0), max_points: int = 40,
-            step_deg: float = 1.0) -> KnockBenchData:
-    """Run every simulation the trials need (in this process)."""
+            step_deg: float = 1.0, workers: int = 1) -> KnockBenchData:
+    """Run every simulation the trials need (in this process, or shared among ``workers`` processes)."""
     solver = SolverSettings(step_deg=step_deg)
     adv = spec.knock.cycle_ca50_advance_deg
     plan = knock_sweep_plan(lambda n, t: float(priors.spark_estimate(n, t)), np.arange(3000, 13001, 1000),
@@ -84,16 +84,16 @@ def prepare(spec: EngineSpec, truth: KnockTruth = KnockTruth(), speeds=range(300
     back = back[back["spark_deg_btdc"] >= RETARD_FLOOR_DEG - 1e-9]
     plan = pd.concat([plan, back], ignore_index=True)
     plan = _with_burn(plan.drop(columns=["bdur_10_90_deg", "wiebe_m"]))
-    res = simulate_with_truth(spec, plan, truth, solver)
+    res = simulate_with_truth(spec, plan, truth, solver, workers)
     ahead = plan.assign(spark_deg_btdc=plan["spark_deg_btdc"] + adv,
                         point_id=plan["point_id"].astype(str) + "+adv")
     # (ahead keeps the plan's burns: the model sees the burn identified at the bench's spark)
-    res_a = simulate_with_truth(spec, ahead, truth, solver)
+    res_a = simulate_with_truth(spec, ahead, truth, solver, workers)
     cells = [(float(n), float(t)) for t in throttles for n in speeds]
     rows = [{"point_id": f"g{int(n)}-{int(t)}-{s:g}", "cell": i, "speed_rpm": n, "throttle_pct": t,
              "spark_deg_btdc": float(s), "lambda": 0.9} for i, (n, t) in enumerate(cells) for s in sparks]
     grid = _with_burn(pd.DataFrame(rows))
-    gres = simulate_with_truth(spec, grid, truth, solver)
+    gres = simulate_with_truth(spec, grid, truth, solver, workers)
     for c in ("brake_torque_nm", "knock_index", "knock_index_truth"):
         grid[c] = gres[c].to_numpy(float)
     return KnockBenchData(plan=plan, plan_results=res, ahead_results=res_a, grid=grid, advance=adv, truth=truth)

@@ -271,7 +271,7 @@ def _gas_key(op: OperatingPoint, overrides: tuple = ()) -> tuple:
 
 
 def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = SolverSettings(),
-             progress: Callable[[int, int], None] | None = None) -> pd.DataFrame:
+             progress: Callable[[int, int], None] | None = None, workers: int = 1) -> pd.DataFrame:
     """Simulate every operating point of a table.
 
     Parameters
@@ -283,6 +283,11 @@ def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = So
         any other columns (``point_id``, effect parameters) are echoed.
     solver : SolverSettings
     progress : callable(done, total), optional
+    workers : int
+        Processes to share the rows among (1: this process).  Rows are split only where a
+        warm-start chain breaks anyway (see Notes), so the result is the same as with one
+        process, row for row (``sim_time_s`` aside).  Tables under :data:`MIN_ROWS_TO_SPLIT` rows
+        stay in this process.
 
     Returns
     -------
@@ -312,6 +317,8 @@ def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = So
                 specs[vals] = spec.with_values(dict(zip((c[len(SPEC_PREFIX):] for c in ov_cols), vals)))
             except ValueError as exc:
                 raise ValueError(f"points: {_row_label(pts, i)}: {exc}") from None
+    if workers > 1 and len(pts) >= MIN_ROWS_TO_SPLIT:
+        return _simulate_split(spec, pts, solver, progress, workers)
     rows = []
     state, key = None, None
     n = len(pts)
@@ -319,11 +326,7 @@ def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = So
         r = pts.iloc[i]
         ov = tuple(r[c] for c in ov_cols)
         spec_i = specs[ov]
-        op = OperatingPoint(speed_rpm=float(r["speed_rpm"]), throttle_pct=float(r["throttle_pct"]),
-                            spark_deg_btdc=float(r["spark_deg_btdc"]), lam=float(r["lambda"]),
-                            bdur_10_90_deg=float(r["bdur_10_90_deg"]), wiebe_m=float(r["wiebe_m"]),
-                            wiebe_a=float(r["wiebe_a"]), p_amb_pa=float(r["p_amb_pa"]),
-                            t_amb_k=float(r["t_amb_k"]))
+        op = _operating_point(r)
         k = _gas_key(op, ov)
         t0 = time.perf_counter()
         row, new_state = simulate_point(spec_i, op, solver, state if k == key else None)
@@ -337,3 +340,70 @@ def simulate(spec: EngineSpec, points: pd.DataFrame, solver: SolverSettings = So
             progress(i + 1, n)
     res = pd.DataFrame(rows, index=pts.index)
     return pd.concat([pts, res], axis=1)
+
+
+def _operating_point(r: pd.Series) -> OperatingPoint:
+    return OperatingPoint(speed_rpm=float(r["speed_rpm"]), throttle_pct=float(r["throttle_pct"]),
+                          spark_deg_btdc=float(r["spark_deg_btdc"]), lam=float(r["lambda"]),
+                          bdur_10_90_deg=float(r["bdur_10_90_deg"]), wiebe_m=float(r["wiebe_m"]),
+                          wiebe_a=float(r["wiebe_a"]), p_amb_pa=float(r["p_amb_pa"]),
+                          t_amb_k=float(r["t_amb_k"]))
+
+
+def chain_starts(pts: pd.DataFrame) -> list[int]:
+    """Rows of a validated table where a warm-start chain begins (the previous row has another gas key).
+
+    Row 0 always; a chain may also break inside (a failed row), which only adds cold starts."""
+    ov_cols = spec_columns(pts)
+    keys = [_gas_key(_operating_point(r), tuple(r[c] for c in ov_cols)) for _, r in pts.iterrows()]
+    return [i for i in range(len(keys)) if i == 0 or keys[i] != keys[i - 1]]
+
+
+#: Smallest table :func:`simulate` shares among processes (a spawned process costs ~1 s, two or three rows).
+MIN_ROWS_TO_SPLIT = 16
+
+#: Chunks per worker in :func:`simulate` with ``workers > 1`` (several, so a worker that drew slow rows does
+#: not leave the other idle at the end).
+CHUNKS_PER_WORKER = 4
+
+
+def _simulate_split(spec, pts, solver, progress, workers):
+    starts = chain_starts(pts) + [len(pts)]
+    target = len(pts) / (workers * CHUNKS_PER_WORKER)
+    bounds, a = [], 0
+    for b in starts[1:]:
+        if b - a >= target or b == len(pts):
+            bounds.append((a, b))
+            a = b
+    if len(bounds) == 1:
+        return simulate(spec, pts, solver, progress)
+    parts = map_in_processes(simulate, [pts.iloc[a:b] for a, b in bounds], workers, (spec,), (solver,), progress)
+    out = pd.concat(parts, ignore_index=True)
+    out.index = pts.index
+    return out
+
+
+def map_in_processes(fn, frames: list, workers: int, before: tuple = (), after: tuple = (),
+                     progress: Callable[[int, int], None] | None = None) -> list:
+    """``[fn(*before, frame, *after) for frame in frames]``, computed in ``workers`` fresh processes.
+
+    The processes are spawned (a fresh interpreter; the numba cache loads in ~1 s), so a script that
+    calls this must guard its top level with ``if __name__ == "__main__":`` (Python's rule for spawned
+    processes), and it cannot run inside a daemonic process (a Dask worker): the flows parallelise through
+    Dask instead.  ``progress(rows done, rows)`` as chunks finish.
+    """
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+
+    total = sum(len(f) for f in frames)
+    out: list = [None] * len(frames)
+    done = 0
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as ex:
+        futs = {ex.submit(fn, *before, f, *after): k for k, f in enumerate(frames)}
+        for fut in as_completed(futs):
+            k = futs[fut]
+            out[k] = fut.result()
+            done += len(frames[k])
+            if progress is not None:
+                progress(done, total)
+    return out

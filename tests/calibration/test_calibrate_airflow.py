@@ -14,6 +14,8 @@ from engine_model.sim import simulate
 from engine_model.calibration import Parameter, airflow_plan, ga_rel_pct, match_airflow, matching_burn
 from engine_model.bench import load_bench
 
+from conftest import SIM_WORKERS
+
 SOLVER = SolverSettings(step_deg=1.0)
 TRUTH = {"exhaust.runner_length_m": 0.33, "intake.runner_length_m": 0.19}
 PARAMS = (Parameter("exhaust.runner_length_m", 0.26, 0.40, 0.004, "m"),
@@ -24,7 +26,7 @@ PARAMS = (Parameter("exhaust.runner_length_m", 0.26, 0.40, 0.004, "m"),
 def synthetic():
     spec = default_spec()
     bench = load_bench().iloc[[0, 2, 4, 6]].reset_index(drop=True)
-    ev = lambda plan: simulate(spec, plan, SOLVER)  # noqa: E731
+    ev = lambda plan: simulate(spec, plan, SOLVER, workers=SIM_WORKERS)  # noqa: E731
     truth = ev(airflow_plan(bench, [TRUTH]))
     bench = bench.assign(air_mass_flow_kg_h=truth["air_mass_flow_kg_h"].to_numpy())
     calls = []

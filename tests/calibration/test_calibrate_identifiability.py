@@ -17,6 +17,8 @@ from engine_model import SolverSettings, default_spec
 from engine_model.sim import simulate
 from engine_model import calibration as cal
 
+from conftest import SIM_WORKERS
+
 pytestmark = pytest.mark.slow
 
 ETA = 0.93
@@ -25,7 +27,7 @@ ETA = 0.93
 @pytest.fixture(scope="module")
 def check():
     spec = default_spec()
-    ev = lambda plan: simulate(spec, plan, SolverSettings(step_deg=1.0))  # noqa: E731
+    ev = lambda plan: simulate(spec, plan, SolverSettings(step_deg=1.0), workers=SIM_WORKERS)  # noqa: E731
     truths = pd.DataFrame({"speed_rpm": [9000.0, 10500.0], "throttle_pct": 100.0, "lambda": 0.9,
                            "bdur_10_90_deg": [26.0, 31.0], "wiebe_m": [5.6, 4.6]})
     return cal.identifiability_check(truths, ev, eta_trans=ETA, n_draws=60, seed=3, n_bdur=7, n_m=7)

@@ -14,6 +14,8 @@ import pytest
 from engine_model.gap.coverage import AxisCoverage, coverage_summary, largest_gap, min_points_to_cover
 from engine_model.gap.design import DesignProblem, select_discriminating
 
+from conftest import SIM_WORKERS
+
 
 def _end_heavy_problem(n=120, seed=0, lo=5000.0, hi=12500.0):
     """Random blocks (4 outputs; base 2 columns, effects A, B, C one column each) scaled so the effects
@@ -138,9 +140,15 @@ def test_candidate_pool_gets_candidates_in_every_band():
 @pytest.mark.slow
 def test_real_pool_plan_covers_the_bench_speed_band():
     """Through the real simulator: a small pool over the WOT bench band (8000-11000 rpm), 3 effects."""
+    from engine_model import default_spec
+    from engine_model.gap.bench_procedure import BENCH_SOLVER
     from engine_model.gap.design import discrimination_plan
+    from engine_model.sim import simulate
 
-    plan, info = discrimination_plan(5, n_candidates=12, effects=["restrictor", "blowby", "transmission_efficiency"],
+    spec = default_spec()
+    plan, info = discrimination_plan(5, spec=spec, n_candidates=12,
+                                     evaluate=lambda p: simulate(spec, p, BENCH_SOLVER, workers=SIM_WORKERS),
+                                     effects=["restrictor", "blowby", "transmission_efficiency"],
                                      speed_rpm=(8000.0, 11000.0), max_speed_gap_rpm=1000.0)
     assert len(plan) == 5
     gap, _, _ = largest_gap(plan["speed_rpm"].to_numpy(), 8000.0, 11000.0)

@@ -10,9 +10,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from engine_model.gap.bench_procedure import BENCH_SOLVER
 from engine_model.gap.outside import (CATEGORIES, OUTSIDE_COLUMNS, category_of, outside_cases, prepared_of,
                                       run_outside_benchmark, score_diagnosis, summarise_outside, overall_outside,
                                       write_outside_report)
+from engine_model.sim import simulate
+
+from conftest import SIM_WORKERS
 
 MEASURED = ["brake_torque_nm", "air_mass_flow_kg_h", "fuel_mass_flow_kg_h", "exhaust_temp_k"]
 CASES = {c.name: c for c in outside_cases()}
@@ -164,7 +168,8 @@ def run(tmp_path_factory):
     plan = plan[["point_id", "speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda"]]
     res = run_outside_benchmark(plan=plan, seeds=2, null_seeds=3, cases=[CASES[n] for n in SLOW_CASES],
                                 candidates=["transmission_efficiency", "friction", "heat_transfer"],
-                                base_iterations=1, k_folds=4, n_noise=30)
+                                base_iterations=1, k_folds=4, n_noise=30,
+                                evaluate_for=lambda sp: (lambda p: simulate(sp, p, BENCH_SOLVER, workers=SIM_WORKERS)))
     paths = write_outside_report(res, tmp_path_factory.mktemp("outside"))
     return res, paths
 

@@ -7,11 +7,16 @@ seed only redraws the bench's knock detection and torque noise), so 40 seeds cos
 
 from __future__ import annotations
 
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
+
 import numpy as np
 import pytest
 
 from engine_model import default_spec
 from engine_model.knock.recovery import prepare, trial
+
+from conftest import SIM_WORKERS
 
 pytestmark = pytest.mark.slow
 SEEDS = tuple(range(201, 241))
@@ -19,8 +24,11 @@ SEEDS = tuple(range(201, 241))
 
 @pytest.fixture(scope="module")
 def trials():
-    data = prepare(default_spec(), sparks=np.arange(0.0, 61.0, 4.0))
-    return [trial(data, s) for s in SEEDS]
+    # the simulations and the seeds shared among the cores (the same numbers as in one process: rows and seeds
+    # are independent)
+    data = prepare(default_spec(), sparks=np.arange(0.0, 61.0, 4.0), workers=SIM_WORKERS)
+    with ProcessPoolExecutor(SIM_WORKERS, mp_context=multiprocessing.get_context("spawn")) as ex:
+        return list(ex.map(trial, [data] * len(SEEDS), SEEDS))
 
 
 def test_sweeps_stay_within_forty_bench_points(trials):

@@ -10,6 +10,8 @@ the per-candidate prediction path is exercised.
 from __future__ import annotations
 
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import pandas as pd
@@ -24,6 +26,8 @@ from engine_model.sim import simulate
 from engine_model.tables import (TABLES, EcuGrid, LambdaTable, MapSettings, PriorModel, build_maps, injection_time_ms,
                                  load_model, long_form, parse_breakpoints, second_differences, smooth_table, write_maps)
 from engine_model.tables.search import decide_cell
+
+from conftest import SIM_WORKERS
 
 SOLVER = SolverSettings(step_deg=0.5)
 GRID = EcuGrid((20.0, 60.0, 100.0), (4000.0, 8000.0, 12000.0))
@@ -50,12 +54,12 @@ class SparkModel:
 
 
 class Recorder:
-    def __init__(self, spec):
-        self.spec, self.plans = spec, []
+    def __init__(self, spec, workers: int = SIM_WORKERS):
+        self.spec, self.plans, self.workers = spec, [], workers
 
     def __call__(self, plan):
         self.plans.append(plan.copy())
-        return simulate(self.spec, plan, SOLVER)
+        return simulate(self.spec, plan, SOLVER, workers=self.workers)
 
 
 @pytest.fixture(scope="module")
@@ -533,7 +537,8 @@ def _fitted_map(seed: int):
                              speed_rpm=[n for n in DEFAULT_SPEED_RPM if n >= 5000])
     model = MapModel(output_transform="log", load_table=table, parametrisation="phasing",
                      factors=("throttle_pct", "speed_rpm", "spark_deg_btdc"), extrapolation="linear").fit(data, spec)
-    res = build_maps(spec, model, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec))
+    # (in one process: the seeds are what is shared among the cores, see fitted_maps)
+    res = build_maps(spec, model, grid=EcuGrid((30.0, 100.0), (7000.0, 12000.0)), evaluate=Recorder(spec, workers=1))
     sweeps = {}
     for _, cell in res.cells[res.cells["feasible"]].iterrows():
         s0 = cell["spark_deg_btdc"]
@@ -541,28 +546,35 @@ def _fitted_map(seed: int):
     return res, sweeps
 
 
+def _fitted_rows(seed: int) -> list[dict]:
+    """Per feasible cell of seed ``seed``'s map: the truth's torque ratio at the table spark and, where the
+    table is MBT-limited, the error of its MBT against the truth's (parabola vertex of a 1-deg sweep)."""
+    rows = []
+    res, sweeps = _fitted_map(seed)
+    lim = res.settings.knock_limit
+    for _, cell in res.cells[res.cells["feasible"]].iterrows():
+        fine = sweeps[int(cell["cell"])]
+        safe = fine[fine["knock_index"] < lim]
+        sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
+        ratio = float(np.interp(cell["spark_deg_btdc"], sp, tq)) / safe["brake_torque_nm"].max()
+        err = math.nan
+        if cell["limited_by"] == "mbt":
+            k = int(np.argmax(tq))
+            near = np.abs(sp - sp[k]) <= 6
+            a, b, _ = np.polyfit(sp[near], tq[near], 2)
+            err = float(cell["spark_mbt_deg_btdc"] - (-b / (2 * a)))
+        rows.append({"seed": seed, "cell": int(cell["cell"]), "limited_by": cell["limited_by"],
+                     "torque_ratio": ratio, "mbt_err_deg": err})
+    return rows
+
+
 @pytest.fixture(scope="module")
 def fitted_maps():
-    """Per seed of :data:`FITTED_MAP_SEEDS`: per feasible cell, the truth's torque ratio at the table spark and,
-    where the table is MBT-limited, the error of its MBT against the truth's (parabola vertex of a 1-deg sweep)."""
-    rows = []
-    for seed in FITTED_MAP_SEEDS:
-        res, sweeps = _fitted_map(seed)
-        lim = res.settings.knock_limit
-        for _, cell in res.cells[res.cells["feasible"]].iterrows():
-            fine = sweeps[int(cell["cell"])]
-            safe = fine[fine["knock_index"] < lim]
-            sp, tq = fine["spark_deg_btdc"].to_numpy(), fine["brake_torque_nm"].to_numpy()
-            ratio = float(np.interp(cell["spark_deg_btdc"], sp, tq)) / safe["brake_torque_nm"].max()
-            err = math.nan
-            if cell["limited_by"] == "mbt":
-                k = int(np.argmax(tq))
-                near = np.abs(sp - sp[k]) <= 6
-                a, b, _ = np.polyfit(sp[near], tq[near], 2)
-                err = float(cell["spark_mbt_deg_btdc"] - (-b / (2 * a)))
-            rows.append({"seed": seed, "cell": int(cell["cell"]), "limited_by": cell["limited_by"],
-                         "torque_ratio": ratio, "mbt_err_deg": err})
-    return pd.DataFrame(rows)
+    """:func:`_fitted_rows` of every seed of :data:`FITTED_MAP_SEEDS` (the seeds shared among the cores; each
+    seed is independent, so the numbers are those of one process)."""
+    with ProcessPoolExecutor(SIM_WORKERS, mp_context=multiprocessing.get_context("spawn")) as ex:
+        per_seed = list(ex.map(_fitted_rows, FITTED_MAP_SEEDS))
+    return pd.DataFrame([r for rows in per_seed for r in rows])
 
 
 @pytest.mark.slow
