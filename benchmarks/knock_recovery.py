@@ -1,6 +1,6 @@
 """Knock calibration against a hidden knock truth of another structure (engine_model.knock.recovery).
 
-    python benchmarks/knock_recovery.py [--seeds 101-110] [--engine engine.toml]
+    python benchmarks/knock_recovery.py [--seeds 101-110] [--engine engine.toml] [--workers N]
 
 Prints, per noise seed, the bench points the knock sweeps used, the fitted multipliers, the share of grid
 cells (3000-13000 rpm x 20-100 % throttle) whose spark at the median multiplier is within 2 deg of the
@@ -13,6 +13,7 @@ The seeds were not used to set anything (the truth's constants were set before t
 from __future__ import annotations
 
 import argparse
+import os
 import pickle
 import time
 from pathlib import Path
@@ -28,6 +29,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="101-110")
     ap.add_argument("--engine", default=None, help="engine TOML (default: the embedded R6)")
     ap.add_argument("--cache", default=None, help="pickle of the simulations (written if missing, read if present)")
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                    help="processes to share the simulations among (default: the cores there are)")
     a = ap.parse_args()
     lo, hi = (int(x) for x in a.seeds.split("-"))
     spec = load_spec(a.engine) if a.engine else default_spec()
@@ -35,7 +38,7 @@ def main() -> None:
     if a.cache and Path(a.cache).is_file():
         data = pickle.loads(Path(a.cache).read_bytes())
     else:
-        data = prepare(spec)
+        data = prepare(spec, workers=max(1, a.workers))
         if a.cache:
             Path(a.cache).write_bytes(pickle.dumps(data))
     print(f"simulations: {len(data.plan) * 2 + len(data.grid)} in {time.perf_counter() - t0:.0f} s")

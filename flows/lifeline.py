@@ -73,7 +73,12 @@ class Stop(KeyboardInterrupt):
 
 @contextlib.contextmanager
 def stop_signals():
-    """SIGINT and SIGTERM raise :class:`Stop` once; a second one exits at once (status 130)."""
+    """SIGINT and SIGTERM raise :class:`Stop` once; a second one exits at once (status 130).
+
+    A :class:`Stop` that lands where Python cannot raise it (a garbage-collector callback such as Dask's
+    GC diagnostics, a ``__del__``) is not printed as "Exception ignored": it is recorded, and
+    :func:`checkpoint` raises it.
+    """
     if os.name != "posix":
         yield
         return
@@ -86,11 +91,22 @@ def stop_signals():
         raise Stop(signal.Signals(signum).name)
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    old_hook = sys.unraisablehook
+
+    def unraisable(u):
+        # the stop raised where Python cannot propagate it (a garbage-collector callback, a __del__): it is
+        # recorded, checkpoint() raises it at the next safe point; nothing to print
+        if isinstance(u.exc_value, Stop) and _SIGNALLED:
+            return
+        old_hook(u)
+
+    sys.unraisablehook = unraisable
     _HANDLER.append(handler)
     try:
         yield
     finally:
         _HANDLER.remove(handler)
+        sys.unraisablehook = old_hook
         for s, h in old.items():
             signal.signal(s, h)
 

@@ -7,8 +7,10 @@ run, and that SIGTERM, replaced by another handler (as Prefect does inside a flo
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
+import sys
 
 import pytest
 
@@ -54,3 +56,28 @@ def test_checkpoint_outside_stop_signals_leaves_handlers_alone():
     before = signal.getsignal(signal.SIGTERM)
     lifeline.checkpoint()
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_a_stop_inside_a_gc_callback_is_not_printed_and_is_raised_at_the_next_safe_point(monkeypatch):
+    """Dask's GC diagnostics run a callback on every full collection; a signal landing there raised our stop
+    where Python can only print it ("Exception ignored in ... Traceback"), a traceback in a clean stop."""
+    printed = []
+    monkeypatch.setattr(sys, "unraisablehook", printed.append)        # what would have been printed
+
+    def callback(phase, info):
+        if phase == "start":
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):             # the handler runs here, inside the callback
+                pass
+
+    with lifeline.stop_signals():
+        gc.callbacks.append(callback)
+        try:
+            gc.collect()
+        finally:
+            gc.callbacks.remove(callback)
+        assert lifeline.stop_name() == "SIGTERM"
+        with pytest.raises(lifeline.Stop, match="SIGTERM"):
+            lifeline.checkpoint()
+    assert not printed, [repr(u.exc_value) for u in printed]
+    assert sys.unraisablehook == printed.append                      # restored on leaving
