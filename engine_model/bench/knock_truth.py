@@ -30,7 +30,7 @@ import pandas as pd
 
 from engine_model import wiebe
 from engine_model.sim.prepare import OperatingPoint, SolverSettings
-from engine_model.sim.simulate import CHUNKS_PER_WORKER, map_in_processes, simulate_point
+from engine_model.sim.simulate import CHUNKS_PER_WORKER, MIN_ROWS_TO_SPLIT, map_in_processes, simulate_point
 from engine_model.spec import EngineSpec
 
 __all__ = ["KnockTruth", "truth_knock_index", "simulate_with_truth"]
@@ -92,10 +92,11 @@ def simulate_with_truth(spec: EngineSpec, plan: pd.DataFrame, truth: KnockTruth,
                         solver: SolverSettings = SolverSettings(), workers: int = 1) -> pd.DataFrame:
     """Simulate every plan row (each from a cold start); add ``knock_index_truth`` (the truth's index).
 
-    ``workers > 1``: the rows are shared among that many spawned processes
+    ``workers > 1`` (and at least :data:`~engine_model.sim.simulate.MIN_ROWS_TO_SPLIT` rows): the rows are
+    shared among that many spawned processes
     (:func:`engine_model.sim.simulate.map_in_processes`); every row is independent, so the result is the same.
     """
-    if workers > 1 and len(plan) > 1:
+    if workers > 1 and len(plan) >= MIN_ROWS_TO_SPLIT:
         k = workers * CHUNKS_PER_WORKER
         frames = [plan.iloc[ix[0]:ix[-1] + 1] for ix in np.array_split(np.arange(len(plan)), k) if len(ix)]
         parts = map_in_processes(simulate_with_truth, frames, workers, (spec,), (truth, solver))
