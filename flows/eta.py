@@ -4,8 +4,8 @@ A stage's total work is not known when it starts (the airflow match, the identif
 search each decide their next batch from the last one), so a stage cannot count down points it has
 not planned yet.  What it can say is how long the same stage took in a reference run, scaled by the
 work this run asks for.  The figures are wall times of complete runs on 2 local Dask workers of a
-2-core machine with the 1D gas exchange, measured 2026-11-26 (``docs/history.md``, "Stage times");
-the progress line calls the result "expected ~", never a promise.
+2-core machine with the 1D gas exchange and nothing else running, measured 2026-11-27
+(``docs/history.md``, "Stage times"); the progress line calls the result "expected ~", never a promise.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ from __future__ import annotations
 #: Stage wall time [s] of the reference runs: default settings and ``--quick`` (7 bench points,
 #: 10 DOE points, 13 x 11 ECU cells default / 3 x 3 quick, crank step 0.5 / 1 deg).
 REFERENCE_STAGE_S = {
-    False: {"calibration": 656.0, "model": 670.0, "maps": 766.0, "gap": 68.0},
-    True: {"calibration": 195.0, "model": 215.0, "maps": 55.0, "gap": 64.0},
+    False: {"calibration": 261.0, "model": 298.0, "maps": 241.0, "gap": 26.0},
+    True: {"calibration": 38.0, "model": 60.0, "maps": 12.0, "gap": 18.0},
 }
 REFERENCE_WORKERS = 2
 REFERENCE_BENCH_POINTS = 7
