@@ -40,14 +40,12 @@ def _predict_frame(model, pts: pd.DataFrame) -> tuple[pd.DataFrame, np.ndarray, 
 
 
 def _vertex(x, y) -> float:
-    """Abscissa of the parabola through three points; the middle point if not concave."""
-    (x0, x1, x2), (y0, y1, y2) = x, y
-    d = (x1 - x0) * (x1 - x2) * (x0 - x2)
-    a = (x2 * (y1 - y0) + x1 * (y0 - y2) + x0 * (y2 - y1)) / d
-    b = (x2 ** 2 * (y0 - y1) + x1 ** 2 * (y2 - y0) + x0 ** 2 * (y1 - y2)) / d
+    """Abscissa of the parabola through three points, kept within them; the middle point if not concave."""
+    x = np.asarray(x, dtype=float)
+    a, b, _c = np.polyfit(x - x[1], np.asarray(y, dtype=float), 2)   # centred on the middle point
     if not a < 0:
-        return float(x1)
-    return float(min(max(-b / (2 * a), x0), x2))
+        return float(x[1])
+    return float(min(max(x[1] - b / (2 * a), x[0]), x[2]))
 
 
 def _peak(s: np.ndarray, t: np.ndarray, imax: int, window: float) -> float:
@@ -206,9 +204,12 @@ def decide_cell(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
             return "need", sorted({min(hi, S[-1] + 4.0), min(hi, S[-1] + 8.0)})
         cross = _knock_cross(S[-1], kn[kk - 1], s_knock, kn[kk], lim)
         if cross - S[-1] <= st.knock_tol_deg or s_knock - S[-1] <= st.knock_tol_deg:
-            # MBT beyond the knock border: estimated from all points (knocking ones too) if the peak is inside
+            # MBT from all points (knocking ones too) if the peak is inside the sweep
             j = int(np.argmax(tq))
             mbt = _vertex(s[j - 1:j + 2], tq[j - 1:j + 2]) if 0 < j < s.size - 1 else math.nan
+            if mbt < S[-1]:   # the parabola peaks before the last knock-free spark: MBT-limited after all
+                return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": max(lo, mbt - st.safety_retard_deg),
+                                "limited_by": "retard" if st.safety_retard_deg > 0 else "mbt"}
             return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": S[-1], "limited_by": "knock"}
         target = cross - 0.2 if cross - 0.2 < s_knock - 0.05 else 0.5 * (S[-1] + s_knock)
         return "need", [max(S[-1] + 0.05, target)]

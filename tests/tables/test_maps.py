@@ -187,6 +187,33 @@ def test_decide_zone1_and_knock_border():
     assert kind == "need" and what[0] == pytest.approx(10 + 10 * math.log(1.7) / math.log(2) - 0.2, abs=1e-6)
 
 
+@pytest.mark.parametrize("peak,limited_by", [(23.5, "mbt"), (25.7, "knock"), (27.0, "knock")])
+def test_mbt_near_the_knock_border_is_the_vertex_of_the_torque_parabola(peak, limited_by):
+    """Three sparks 4 deg apart, the border just above the middle one, whose torque is the highest knock-free
+    one: MBT is where the parabola through the three torques peaks (exact for a parabolic torque curve), not
+    the middle spark; a peak before the border makes the cell MBT-limited (spark at MBT, not at the border)."""
+    st = MapSettings()
+    s = np.array([21.0, 25.0, 29.0])
+    ev = pd.DataFrame({"spark_deg_btdc": s, "brake_torque_nm": 30.0 - 0.01 * (s - peak) ** 2,
+                       "knock_index": [0.90, 0.999, 1.05]})
+    kind, what = decide_cell(ev, st)
+    assert kind == "done" and what["limited_by"] == limited_by and what["border"] == 25.0
+    assert what["mbt"] == pytest.approx(peak, abs=1e-9)
+    assert what["raw"] == pytest.approx(min(peak, 25.0), abs=1e-9)
+
+
+def test_mbt_from_three_sparks_is_the_vertex_of_the_torque_parabola():
+    """Fewer than four sparks near the best one (refinement not yet run): the 3-point vertex, which the next
+    stage then refines around: a concave parabola peaking at 31.3 deg is asked about at 31.3 (its neighbours
+    +-2 deg lie within 0.8 deg of sparks already run, so they are skipped)."""
+    st = MapSettings(refine_step_deg=2.0)
+    s = np.array([26.0, 30.0, 34.0])
+    ev = pd.DataFrame({"spark_deg_btdc": s, "brake_torque_nm": 30.0 - 0.01 * (s - 31.3) ** 2,
+                       "knock_index": [0.5, 0.6, 0.7]})
+    kind, what = decide_cell(ev, st)
+    assert kind == "need" and what == pytest.approx([31.3], abs=1e-9)
+
+
 # --------------------------------------------------------------------------- the built map
 
 @pytest.mark.slow   # the 3 x 3 map fixture (~35 s with the 1D gas exchange)
