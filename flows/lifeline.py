@@ -93,9 +93,7 @@ def stop_signals():
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
     old_hook = sys.unraisablehook
 
-    def unraisable(u):
-        # the stop raised where Python cannot propagate it (a garbage-collector callback, a __del__): it is
-        # recorded, checkpoint() raises it at the next safe point; nothing to print
+    def unraisable(u):   # see the docstring: a recorded stop is not printed
         if isinstance(u.exc_value, Stop) and _SIGNALLED:
             return
         old_hook(u)

@@ -208,8 +208,7 @@ def decide_cell(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
             j = int(np.argmax(tq))
             mbt = _vertex(s[j - 1:j + 2], tq[j - 1:j + 2]) if 0 < j < s.size - 1 else math.nan
             if mbt < S[-1]:   # the parabola peaks before the last knock-free spark: MBT-limited after all
-                return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": max(lo, mbt - st.safety_retard_deg),
-                                "limited_by": "retard" if st.safety_retard_deg > 0 else "mbt"}
+                return "done", _at_mbt(mbt, S[-1], st)
             return "done", {"status": "ok", "mbt": mbt, "border": S[-1], "raw": S[-1], "limited_by": "knock"}
         target = cross - 0.2 if cross - 0.2 < s_knock - 0.05 else 0.5 * (S[-1] + s_knock)
         return "need", [max(S[-1] + 0.05, target)]
@@ -224,9 +223,13 @@ def decide_cell(ev: pd.DataFrame, st: MapSettings) -> tuple[str, object]:
         cand = [c for c in cand if np.min(np.abs(s - c)) > 0.4 * h]
         if cand:
             return "need", sorted(cand)
-    raw = mbt - st.safety_retard_deg
-    limited = "retard" if st.safety_retard_deg > 0 else "mbt"
-    return "done", {"status": "ok", "mbt": mbt, "border": border, "raw": max(lo, raw), "limited_by": limited}
+    return "done", _at_mbt(mbt, border, st)
+
+
+def _at_mbt(mbt: float, border: float, st: MapSettings) -> dict:
+    """Resolution of an MBT-limited cell: spark MBT less the safety retard (not below the spark range)."""
+    return {"status": "ok", "mbt": mbt, "border": border, "raw": max(st.spark_min_deg_btdc, mbt - st.safety_retard_deg),
+            "limited_by": "retard" if st.safety_retard_deg > 0 else "mbt"}
 
 
 class SparkRunner:
