@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pandas as pd
@@ -233,7 +234,7 @@ def write_report(folder, name: str, title: str, sections: list) -> tuple[Path, P
                        "```\n" + it.to_string(index=False) + "\n```", ""]
                 ht.append(it.to_html(index=False, float_format=lambda v: f"{v:.4g}", border=0))
             elif isinstance(it, Path):
-                rel = it.relative_to(folder) if it.is_absolute() and folder in it.parents else it
+                rel = Path(os.path.relpath(os.path.abspath(it), os.path.abspath(folder)))
                 md += [f"![{rel.stem}]({rel.as_posix()})", ""]
                 ht.append(f"<p><img src='{html.escape(rel.as_posix())}' alt='{html.escape(rel.stem)}'></p>")
             else:
