@@ -335,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--speed", default=None, help="speed breakpoints [rpm], e.g. '1000:13000:1000' (the default)")
     mp.add_argument("--grid", default=None, help="take the breakpoints from a wide table CSV (e.g. an ECU export)")
     mp.add_argument("--lambda-table", default=None, help="target-lambda wide CSV (rows throttle %%, columns rpm)")
-    mp.add_argument("--knock-margin", type=float, default=None, help="keep knock_index < 1 - margin (default 0.15)")
+    mp.add_argument("--knock-margin", type=float, default=None, help="keep the fastest cycles' knock_index < 1 - margin (default 0: the safety lies in the fastest cycles, the knock multiplier's quantile and the burn uncertainty)")
     mp.add_argument("--safety-retard", type=float, default=None, help="retard from MBT [deg] (default 0)")
     mp.add_argument("--start-retard", type=float, default=None, help="starting-map retard [deg] (default 12)")
     mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")

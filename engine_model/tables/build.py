@@ -42,6 +42,7 @@ import pandas as pd
 
 from engine_model import doe
 from engine_model.spec import EngineSpec
+from engine_model.tables.bench_offset import offset_at_speeds
 from engine_model.tables.grid import EcuGrid, LambdaTable
 from engine_model.tables.injection import injection_time_ms
 from engine_model.tables.search import EVAL_COLUMNS, SparkRunner, decide_cell, model_spark, uncertainty_retard
@@ -83,7 +84,10 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
         at a point's speed (within 1 rpm) and throttle (within 0.5 %) that the bench ran at MBT without knock
         takes the bench's spark (``spark_source`` "bench", ``limited_by`` "bench"): a measured clean MBT beats
         the model's extrapolation; smoothing keeps it and verification does not retard it (the model's knock
-        index there is still reported, in ``knock_index_cycle``).
+        index there is still reported, in ``knock_index_cycle``).  The difference between the bench's spark
+        and the model's MBT there is carried to the MBT target of the cells at neighbouring speeds
+        (``bench_mbt_offset_deg``; ``settings.bench_offset_reach_rpm``, :mod:`engine_model.tables.bench_offset`),
+        still capped by the knock-safe border.
 
     Returns
     -------
@@ -114,11 +118,13 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     stages = _search(runner, cells, st)
     ev = runner.evaluations()
     _zones(cells, ev, st)
-    applied, border_safe = _knock_uncertainty(runner, ev, cells, st)
+    border_safe = _knock_uncertainty(runner, ev, cells, st)
     border_safe = _honour_bench(cells, bench, border_safe)
+    _carry_bench_offset(cells, border_safe, st)
     sinfo = _smooth_spark(cells, grid, st, border_safe)
     fixes = _verify(runner, ev, cells, st)
     inj, have = _injection(cells, grid, spec, st)
+    applied = cells["knock_uncertainty_retard_deg"].to_numpy(float)    # as the bench offset left it
     stats = _stats(cells, grid, st, runner, stages, fixes, sinfo, inj, have, applied, time.perf_counter() - t0)
     return MapResult(grid=grid, settings=st, cells=cells.reset_index(drop=True), evaluations=runner.evaluations(),
                      stats=stats, spec_hash=spec.spec_hash(), model_name=type(model).__name__)
@@ -207,10 +213,11 @@ def _zones(cells: pd.DataFrame, ev: pd.DataFrame, st: MapSettings) -> None:
 
 
 def _knock_uncertainty(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFrame,
-                       st: MapSettings) -> tuple[np.ndarray, np.ndarray]:
+                       st: MapSettings) -> np.ndarray:
     """Knock safety against the model's burn uncertainty: the border moved back by z * sigma_CA50 * gain.
 
-    Returns the retard applied per cell [deg] and the knock-safe border [deg BTDC].
+    Sets ``knock_uncertainty_retard_deg`` (the retard applied per cell [deg]); returns the knock-safe border
+    [deg BTDC].
     """
     lo = st.spark_min_deg_btdc
     unc = uncertainty_retard(runner, ev, cells, st)
@@ -226,7 +233,7 @@ def _knock_uncertainty(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFram
     cells["knock_uncertainty_retard_deg"] = applied
     cells["spark_raw_deg_btdc"] = raw1
     cells.loc[applied > 0, "limited_by"] = "knock"
-    return applied, border_safe
+    return border_safe
 
 
 def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: np.ndarray) -> np.ndarray:
@@ -252,6 +259,36 @@ def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: 
     cells.loc[pinned, "infeasible_reason"] = ""
     cells.loc[pinned, "limited_by"] = "bench"
     return np.where(pinned, spark, border_safe)      # pinned: lower and upper bound of the smoothing
+
+
+def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -> None:
+    """Move the MBT target of the unmeasured feasible cells by the bench's MBT offset at their speed
+    (:mod:`engine_model.tables.bench_offset`); the knock-safe border still caps it (then ``limited_by`` "knock")."""
+    cells["bench_mbt_offset_deg"] = 0.0
+    pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
+    if st.bench_offset_reach_rpm is None or not pinned.any():
+        return
+    lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
+    mbt = cells["spark_mbt_deg_btdc"].to_numpy(float)
+    speed = cells["speed_rpm"].to_numpy(float)
+    # a cell at the end of the spark range has no MBT inside it: its offset is not measured
+    measured = pinned & np.isfinite(mbt) & (mbt > lo + 1e-6) & (mbt < hi - 1e-6)
+    d = offset_at_speeds(speed[measured], cells["bench_spark_deg_btdc"].to_numpy(float)[measured] - mbt[measured],
+                         speed, float(st.bench_offset_reach_rpm))
+    limited = cells["limited_by"].to_numpy(object)
+    move = (cells["feasible"].to_numpy(bool) & ~pinned & np.isfinite(mbt) & (np.abs(d) > 1e-9)
+            & np.isin(limited, ["mbt", "retard", "knock"]))
+    if not move.any():
+        return
+    target = np.clip(mbt + d - st.safety_retard_deg, lo, hi)
+    capped = target > border_safe
+    raw = np.where(capped, border_safe, target)
+    at_mbt = "retard" if st.safety_retard_deg > 0 else "mbt"
+    unc = np.maximum(0.0, np.minimum(target, cells["spark_border_deg_btdc"].to_numpy(float)) - border_safe)
+    cells.loc[move, "spark_raw_deg_btdc"] = raw[move]
+    cells.loc[move, "limited_by"] = np.where(capped, "knock", at_mbt)[move]
+    cells.loc[move, "knock_uncertainty_retard_deg"] = np.nan_to_num(unc)[move]
+    cells.loc[move, "bench_mbt_offset_deg"] = d[move]
 
 
 def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_safe: np.ndarray) -> dict:
@@ -393,5 +430,8 @@ def _stats(cells, grid, st, runner, stages, fixes, sinfo, inj, have, applied, wa
         "knock_uncertainty": {"z": st.knock_uncertainty_z, "cells_retarded": int((applied > 0).sum()),
                               "mean_retard_deg": float(applied[applied > 0].mean()) if (applied > 0).any() else 0.0,
                               "max_retard_deg": float(applied.max()) if applied.size else 0.0},
+        "bench_mbt_offset": {"reach_rpm": st.bench_offset_reach_rpm,
+                             "cells_moved": int((cells["bench_mbt_offset_deg"] != 0).sum()),
+                             "max_abs_deg": float(cells["bench_mbt_offset_deg"].abs().max())},
         "battery_v": st.battery_v, "seconds": round(wall, 2),
     }

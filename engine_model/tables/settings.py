@@ -86,6 +86,12 @@ class MapSettings:
         torque cost; 1.64 removed them all at 25 % (measured with the earlier
         one-sided gain, docs/history/knock_uncertainty.md).
         0 ignores the uncertainty; models without ``*_std`` outputs get none.
+    bench_offset_reach_rpm : float or None
+        The bench's measured MBT error of the model (bench spark - model MBT in a cell the bench ran
+        clean at MBT) is carried to the MBT target of every cell at that speed, linear in speed between
+        measured speeds and faded to zero over this distance beyond them [rpm]
+        (:mod:`engine_model.tables.bench_offset`).  Default 2000; None carries nothing (only the
+        measured cells take the bench's spark).
     """
 
     knock_margin: float = 0.0
@@ -105,6 +111,7 @@ class MapSettings:
     min_bmep_bar: float = priors.MIN_BMEP_BAR
     ca50_target_deg_atdc: float = priors.CA50_TARGET_DEG_ATDC
     knock_uncertainty_z: float = 1.0
+    bench_offset_reach_rpm: float | None = 2000.0
 
     def __post_init__(self):
         def need(ok, name, rule):
@@ -131,6 +138,8 @@ class MapSettings:
         need(self.min_bmep_bar >= 0, "min_bmep_bar", "must be >= 0 bar")
         need(isinstance(self.knock_uncertainty_z, (int, float)) and not isinstance(self.knock_uncertainty_z, bool)
              and 0 <= self.knock_uncertainty_z <= 4, "knock_uncertainty_z", "must be a number in [0, 4] (sigmas)")
+        need(self.bench_offset_reach_rpm is None or 0 <= self.bench_offset_reach_rpm <= 20000,
+             "bench_offset_reach_rpm", "must be None (carry nothing) or lie in [0, 20000] rpm")
 
     @property
     def cycle_advance(self) -> float:

@@ -9,6 +9,7 @@ the per-candidate prediction path is exercised.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
@@ -440,6 +441,49 @@ def test_search_recovers_the_synthetic_engine():
         cell = int(c.loc[(t, n), "cell"])
         assert set(ev.loc[ev["cell"] == cell, "stage"]) == {"s1"}
     assert res.stats["points_per_cell"] < 14
+
+
+def test_bench_mbt_offset_is_carried_along_speed_and_capped_by_the_knock_border():
+    """The bench ran 6000 rpm 4 deg and 10000 rpm 2 deg from the model's MBT (50 % throttle): every MBT cell at
+    those speeds moves by that much, 8000 rpm by the interpolated +1, beyond the range faded over the reach; a
+    cell the offset would push past the knock border stays at the border; without carrying, MBT stays."""
+    st0 = MapSettings(spark_min_deg_btdc=10.0, max_second_diff_deg=100.0, cycle_advance_deg=2.0,
+                      knock_uncertainty_z=0.0, bench_offset_reach_rpm=None)
+    grid = EcuGrid((30, 50, 80, 100), (4000, 6000, 8000, 10000, 13000))
+    plain = build_maps(default_spec(), PriorModel(), grid=grid, evaluate=synthetic_engine, settings=st0)
+    p = plain.cells.set_index(["throttle_pct", "speed_rpm"])
+    mbt6, mbt10 = p.loc[(50, 6000), "spark_mbt_deg_btdc"], p.loc[(50, 10000), "spark_mbt_deg_btdc"]
+    bench = pd.DataFrame({"speed_rpm": [6000.0, 10000.0], "throttle_pct": [50.0, 50.0],
+                          "spark_deg_btdc": [mbt6 + 4.0, mbt10 - 2.0], "at_mbt": True, "knock": False})
+    res = build_maps(default_spec(), PriorModel(), grid=grid, evaluate=synthetic_engine, bench=bench,
+                     settings=dataclasses.replace(st0, bench_offset_reach_rpm=4000.0))
+    c = res.cells.set_index(["throttle_pct", "speed_rpm"])
+    expect = {4000: 4.0 * 0.5, 6000: 4.0, 8000: 1.0, 10000: -2.0, 13000: -2.0 * 0.25}
+    for (t, n), row in c.iterrows():
+        if row["spark_source"] == "bench":
+            continue
+        if p.loc[(t, n), "limited_by"] == "mbt" and row["limited_by"] == "mbt":
+            assert row["bench_mbt_offset_deg"] == pytest.approx(expect[n], abs=1e-9), (t, n)
+            assert row["spark_deg_btdc"] == pytest.approx(p.loc[(t, n), "spark_mbt_deg_btdc"] + expect[n], abs=0.15)
+        # never past the knock border, whatever the offset
+        assert row["spark_deg_btdc"] <= row["spark_border_deg_btdc"] + 1e-9, (t, n)
+    # 80 %, 6000 rpm: MBT 38 deg, border 40 (knock of the fastest cycles 1 at 42 - 2): +4 would pass it
+    assert p.loc[(80, 6000), "limited_by"] == "mbt" and c.loc[(80, 6000), "limited_by"] == "knock"
+    assert c.loc[(80, 6000), "spark_deg_btdc"] == pytest.approx(c.loc[(80, 6000), "spark_border_deg_btdc"], abs=0.15)
+    assert (c["knock_index_cycle"][c["feasible"]] < 1.0).all()
+    assert res.stats["bench_mbt_offset"]["cells_moved"] >= 10
+    assert (plain.cells["bench_mbt_offset_deg"] == 0).all()
+
+
+def test_offset_at_speeds_interpolates_averages_and_fades():
+    from engine_model.tables.bench_offset import offset_at_speeds
+    n = np.array([5000.0, 6000.0, 7000.0, 8000.0, 9000.0, 10000.0, 12000.0])
+    d = offset_at_speeds(np.array([6000.0, 8000.0, 8000.0]), np.array([2.0, -1.0, -3.0]), n, 2000.0)
+    assert d == pytest.approx([1.0, 2.0, 0.0, -2.0, -1.0, 0.0, 0.0])
+    assert offset_at_speeds(np.array([6000.0]), np.array([2.0]), n, 0.0) == pytest.approx([0, 2, 0, 0, 0, 0, 0])
+    assert (offset_at_speeds(np.array([]), np.array([]), n, 2000.0) == 0).all()
+    with pytest.raises(ValueError, match="reach_rpm"):
+        offset_at_speeds(np.array([6000.0]), np.array([2.0]), n, -1.0)
 
 
 def test_bounded_quadratic_matches_scipy():
