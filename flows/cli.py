@@ -297,7 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
     r.add_argument("--out", default=None, help="output folder (default results/<run-id>/); tables in OUT/maps/")
     r.add_argument("--eta-trans", type=float, default=0.95, help="transmission efficiency [-] (default 0.95)")
-    r.add_argument("--doe-points", type=int, default=None, help="operating points (spark sweeps) on the virtual bench (default 10)")
+    r.add_argument("--doe-points", type=int, default=None, help="operating points (spark sweeps) on the virtual bench (default 16)")
     r.add_argument("--throttle", default=None, help="ECU throttle breakpoints [%%] ('0,5,10' or 'start:stop:step')")
     r.add_argument("--speed", default=None, help="ECU speed breakpoints [rpm] (default 1000:13000:1000)")
     r.add_argument("--stages", default=None, help="comma list of calibration,model,maps,gap (default all); a stage "

@@ -46,7 +46,7 @@ class RunSettings:
     eta_trans: float = 0.95
     step_deg: float = 0.5
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
-    doe_points: int = 10
+    doe_points: int = 16
     spark_offsets: tuple = (-15, -10, -5, 0, 5)
     doe_bounds: dict = field(default_factory=dict)
     doe_seed: int = 0

@@ -29,7 +29,7 @@ import pandas as pd
 from engine_model import priors
 from engine_model.bench.burnlaw import BurnLaw
 from engine_model.bench.virtual import NoiseModel, VirtualBench
-from engine_model.calibration.identify import identification_plan
+from engine_model.calibration.identify import BDUR_RANGE_DEG, identification_plan
 from engine_model.calibration.sweeps import choose_operating_points, identify_sweeps, sweep_plan
 from engine_model.doe import QUICK_SOLVER, feasibility
 from engine_model.globalmodel import learning
@@ -37,7 +37,8 @@ from engine_model.globalmodel.mapmodel import MapModel, fit_map_model
 from engine_model.sim.prepare import SolverSettings
 from engine_model.spec import EngineSpec
 
-__all__ = ["CampaignSettings", "CampaignResult", "run_campaign", "identification_error", "holdout_error",
+__all__ = ["CampaignSettings", "CampaignResult", "run_campaign", "identification_bdur_nodes", "identification_error",
+           "holdout_error",
            "MIN_IDENTIFIED", "measure_with_resweeps", "MAX_RESWEEPS"]
 
 #: Fewest identified operating points a global model is fitted on (one spark sweep each).
@@ -68,7 +69,8 @@ class CampaignSettings:
     doe_seed : int
         Seed of the design and of the bench's noise.
     ident_grid : (int, int)
-        BDUR10-90 x m grid of the identification sweep at each bench point.
+        BDUR10-90 x m grid of the identification sweep at each bench point over the paper's plane, the
+        BDUR10-90 axis extended downward for fast low-speed burns (:func:`identification_bdur_nodes`).
     learning_sizes, learning_seeds : tuple of int
         Learning curve: design sizes and seeds.
     holdout : dict
@@ -77,7 +79,7 @@ class CampaignSettings:
 
     eta_trans: float = 0.95
     step_deg: float = 0.5
-    doe_points: int = 10
+    doe_points: int = 16
     spark_offsets: tuple = (-15, -10, -5, 0, 5)
     doe_bounds: dict = field(default_factory=dict)
     doe_seed: int = 0
@@ -163,6 +165,45 @@ def identification_error(ident: pd.DataFrame, law: BurnLaw) -> tuple[pd.DataFram
     return ident, {"points": int(len(good)), "of": int(len(ident)),
                    "bdur_rmse_deg": float(np.sqrt(np.mean(err_b ** 2))), "bdur_bias_deg": float(err_b.mean()),
                    "m_rmse": float(np.sqrt(np.mean(err_m ** 2))), "m_bias": float(err_m.mean())}
+
+
+#: Lowest BDUR10-90 node of an extended identification plane [deg] [A]: far below any burn of this engine
+#: (the prior gives 11.5 deg at 1000 rpm); it only bounds the extension.
+IDENT_BDUR_FLOOR_DEG = 5.0
+
+
+def identification_bdur_nodes(speed_rpm: float, n_bdur: int) -> tuple[float, int]:
+    """Lower edge [deg] and node count of the BDUR10-90 axis that identifies a sweep at ``speed_rpm``.
+
+    The paper's plane (:data:`engine_model.calibration.identify.BDUR_RANGE_DEG`, 20-50 deg) with ``n_bdur``
+    nodes was set for 8000-11000 rpm.  Burns are shorter in crank degrees at low speed (angle ~ N^(1/3),
+    Hires et al., Heywood sec. 9.3): at 3000 rpm the prior expects ~17 deg, below the plane, and an
+    estimate pinned to the plane's edge is no estimate.  So the axis is extended downward by whole steps of
+    the paper's grid (its nodes stay where they were) until the prior's WOT burn angle at ``speed_rpm``
+    (before the prior's clip) lies at least one step above the lower edge, not below
+    :data:`IDENT_BDUR_FLOOR_DEG`.  Returns ``(lower edge, node count)``; the upper edge stays 50 deg.
+    """
+    if not (speed_rpm > 0 and math.isfinite(speed_rpm)):
+        raise ValueError(f"identification_bdur_nodes: speed_rpm = {speed_rpm!r} must be a finite speed > 0")
+    if int(n_bdur) < 3:
+        raise ValueError(f"identification_bdur_nodes: n_bdur = {n_bdur!r}, need >= 3 nodes")
+    lo, hi = BDUR_RANGE_DEG
+    step = (hi - lo) / (int(n_bdur) - 1)
+    prior = priors.BDUR_REF_DEG * (speed_rpm / priors.SPEED_REF_RPM) ** priors.SPEED_EXPONENT
+    k = 0
+    while prior - (lo - k * step) < step and lo - (k + 1) * step >= IDENT_BDUR_FLOOR_DEG:
+        k += 1
+    return lo - k * step, int(n_bdur) + k
+
+
+def campaign_identification_plan(ok: pd.DataFrame, n_bdur: int, n_m: int) -> pd.DataFrame:
+    """:func:`~engine_model.calibration.identify.identification_plan` of the runnable sweep points, each sweep
+    on the BDUR10-90 axis of :func:`identification_bdur_nodes` for its speed (m over the paper's range)."""
+    frames = []
+    for speed, g in ok.groupby("speed_rpm", sort=True):
+        lo, n = identification_bdur_nodes(float(speed), n_bdur)
+        frames.append(identification_plan(g, {}, n, n_m, bdur_range=(lo, BDUR_RANGE_DEG[1])))
+    return pd.concat(frames, ignore_index=True)
 
 
 def training_points(ident: pd.DataFrame) -> tuple[pd.DataFrame, str]:
@@ -304,7 +345,7 @@ def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
                            f"({meas['status'].value_counts().to_dict()}); too few for a map model")
     ok["at_mbt"] = False
     n_b, n_m = st.ident_grid
-    ident = identify_sweeps(meas, make("ident", full)(identification_plan(ok, {}, n_b, n_m)),
+    ident = identify_sweeps(meas, make("ident", full)(campaign_identification_plan(ok, n_b, n_m)),
                             eta_trans=st.eta_trans)
     ident, id_err = identification_error(ident, law)
     good, note = training_points(ident)

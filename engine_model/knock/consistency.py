@@ -96,7 +96,9 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
     * ``light_load_knock``: knock-limited or knock-infeasible cells at <= 20 % throttle and >= 2000 rpm, each
       with its plenum pressure (a butterfly at 20 % passes full load at low speed on a restricted engine);
     * ``part_load_drops``: per speed >= ``min_speed_rpm``, cells outside knock-limited and bench cells whose
-      spark lies more than 2 deg below the WOT cell's model spark (the WOT cell's MBT when the bench pinned it);
+      spark lies more than 2 deg below the WOT cell's model spark (when the bench pinned the WOT cell: its model
+      MBT plus the bench offset the table carried at that speed, ``bench_mbt_offset_deg``, i.e. the bench's spark
+      when the offset is carried, the model's MBT when it is not);
     * ``zone1``: where knock survives full retard (expected at high throttle and low speed).
     """
     c = cells
@@ -108,7 +110,8 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
         if 100.0 not in g.index:
             continue
         w = g.loc[100.0]
-        ref = float(w["spark_mbt_deg_btdc"]) if w["limited_by"] == "bench" else float(w["spark_deg_btdc"])
+        carried = float(w["bench_mbt_offset_deg"]) if "bench_mbt_offset_deg" in g.columns else 0.0
+        ref = float(w["spark_mbt_deg_btdc"]) + carried if w["limited_by"] == "bench" else float(w["spark_deg_btdc"])
         for t, r in g.iterrows():
             if 20 <= t < 100 and r["limited_by"] not in ("knock", "bench", "infeasible") and \
                     r["spark_deg_btdc"] < ref - 2.0:

@@ -263,8 +263,13 @@ def _honour_bench(cells: pd.DataFrame, bench: pd.DataFrame | None, border_safe: 
 
 def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -> None:
     """Move the MBT target of the unmeasured feasible cells by the bench's MBT offset at their speed
-    (:mod:`engine_model.tables.bench_offset`); the knock-safe border still caps it (then ``limited_by`` "knock")."""
+    (:mod:`engine_model.tables.bench_offset`); the knock-safe border still caps it (then ``limited_by`` "knock").
+
+    ``bench_mbt_offset_deg`` holds the offset at every cell's speed (0 where nothing is carried; in a pinned cell
+    its own bench spark - model MBT), ``bench_mbt_offset_applied`` whether the cell's target moved by it.
+    """
     cells["bench_mbt_offset_deg"] = 0.0
+    cells["bench_mbt_offset_applied"] = False
     pinned = np.isfinite(cells["bench_spark_deg_btdc"].to_numpy(float))
     if st.bench_offset_reach_rpm is None or not pinned.any():
         return
@@ -273,8 +278,9 @@ def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSet
     speed = cells["speed_rpm"].to_numpy(float)
     # a cell at the end of the spark range has no MBT inside it: its offset is not measured
     measured = pinned & np.isfinite(mbt) & (mbt > lo + 1e-6) & (mbt < hi - 1e-6)
-    d = offset_at_speeds(speed[measured], cells["bench_spark_deg_btdc"].to_numpy(float)[measured] - mbt[measured],
-                         speed, float(st.bench_offset_reach_rpm))
+    off = cells["bench_spark_deg_btdc"].to_numpy(float) - mbt
+    d = offset_at_speeds(speed[measured], off[measured], speed, float(st.bench_offset_reach_rpm))
+    cells["bench_mbt_offset_deg"] = np.where(measured, off, d)
     limited = cells["limited_by"].to_numpy(object)
     move = (cells["feasible"].to_numpy(bool) & ~pinned & np.isfinite(mbt) & (np.abs(d) > 1e-9)
             & np.isin(limited, ["mbt", "retard", "knock"]))
@@ -288,7 +294,7 @@ def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSet
     cells.loc[move, "spark_raw_deg_btdc"] = raw[move]
     cells.loc[move, "limited_by"] = np.where(capped, "knock", at_mbt)[move]
     cells.loc[move, "knock_uncertainty_retard_deg"] = np.nan_to_num(unc)[move]
-    cells.loc[move, "bench_mbt_offset_deg"] = d[move]
+    cells.loc[move, "bench_mbt_offset_applied"] = True
 
 
 def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_safe: np.ndarray) -> dict:
@@ -431,7 +437,7 @@ def _stats(cells, grid, st, runner, stages, fixes, sinfo, inj, have, applied, wa
                               "mean_retard_deg": float(applied[applied > 0].mean()) if (applied > 0).any() else 0.0,
                               "max_retard_deg": float(applied.max()) if applied.size else 0.0},
         "bench_mbt_offset": {"reach_rpm": st.bench_offset_reach_rpm,
-                             "cells_moved": int((cells["bench_mbt_offset_deg"] != 0).sum()),
+                             "cells_moved": int(cells["bench_mbt_offset_applied"].sum()),
                              "max_abs_deg": float(cells["bench_mbt_offset_deg"].abs().max())},
         "battery_v": st.battery_v, "seconds": round(wall, 2),
     }

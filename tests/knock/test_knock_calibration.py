@@ -116,3 +116,17 @@ def test_table_honours_the_bench_clean_mbt_spark():
     assert tab["knock_index_fastest_cycles"].iloc[0] == pytest.approx(0.5)
     summ = knock.consistency_summary(tab)
     assert summ["mbt_within_2deg"] == "1 of 1" and summ["table_within_3deg"] == "1 of 1"
+
+
+def test_trend_reference_at_a_pinned_wot_cell_carries_the_bench_offset():
+    """10000 rpm: the bench pinned WOT at 49.5 deg where the model's MBT is 53.3.  Part load at 50.4 deg is a drop
+    against the model's WOT MBT when the table carried no offset, and none when it carried the bench's -3.8."""
+    cells = pd.DataFrame({"speed_rpm": 10000.0, "throttle_pct": [60.0, 100.0], "spark_deg_btdc": [50.4, 49.5],
+                          "spark_mbt_deg_btdc": [54.2, 53.3], "limited_by": ["mbt", "bench"],
+                          "infeasible_reason": ["", ""], "plenum_pressure_bar": [0.9, 0.98]})
+    drops = knock.table_trends(cells)["part_load_drops"]
+    assert [d["throttle_pct"] for d in drops] == [60.0] and drops[0]["wot_reference"] == pytest.approx(53.3)
+    carried = cells.assign(bench_mbt_offset_deg=[-3.8, -3.8])
+    assert knock.table_trends(carried)["part_load_drops"] == []
+    low = cells.assign(spark_deg_btdc=[47.0, 49.5], bench_mbt_offset_deg=[-3.8, -3.8])    # 2.5 deg below 49.5
+    assert [d["throttle_pct"] for d in knock.table_trends(low)["part_load_drops"]] == [60.0]

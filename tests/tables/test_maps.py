@@ -464,6 +464,7 @@ def test_bench_mbt_offset_is_carried_along_speed_and_capped_by_the_knock_border(
             continue
         if p.loc[(t, n), "limited_by"] == "mbt" and row["limited_by"] == "mbt":
             assert row["bench_mbt_offset_deg"] == pytest.approx(expect[n], abs=1e-9), (t, n)
+            assert row["bench_mbt_offset_applied"], (t, n)
             assert row["spark_deg_btdc"] == pytest.approx(p.loc[(t, n), "spark_mbt_deg_btdc"] + expect[n], abs=0.15)
         # never past the knock border, whatever the offset
         assert row["spark_deg_btdc"] <= row["spark_border_deg_btdc"] + 1e-9, (t, n)
@@ -472,7 +473,7 @@ def test_bench_mbt_offset_is_carried_along_speed_and_capped_by_the_knock_border(
     assert c.loc[(80, 6000), "spark_deg_btdc"] == pytest.approx(c.loc[(80, 6000), "spark_border_deg_btdc"], abs=0.15)
     assert (c["knock_index_cycle"][c["feasible"]] < 1.0).all()
     assert res.stats["bench_mbt_offset"]["cells_moved"] >= 10
-    assert (plain.cells["bench_mbt_offset_deg"] == 0).all()
+    assert (plain.cells["bench_mbt_offset_deg"] == 0).all() and not plain.cells["bench_mbt_offset_applied"].any()
 
 
 def test_offset_at_speeds_interpolates_averages_and_fades():
