@@ -115,6 +115,16 @@ def cmd_calibrate(args) -> int:
     return 0
 
 
+def _reach(text: str) -> float | None:
+    """``--bench-offset-reach``: a distance in rpm, or 'none' (carry nothing)."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"--bench-offset-reach {text!r}: expected a distance in rpm or 'none'") from None
+
+
 def cmd_maps(args) -> int:
     from flows.stages.maps import run_maps
 
@@ -122,6 +132,8 @@ def cmd_maps(args) -> int:
                                   ("start_retard_deg", args.start_retard), ("battery_v", args.battery_v),
                                   ("knock_uncertainty_z", args.knock_uncertainty_z))
                 if v is not None}
+    if args.bench_offset_reach is not None:
+        settings["bench_offset_reach_rpm"] = _reach(args.bench_offset_reach)
     kw = dict(throttle=args.throttle, speed=args.speed, lambda_table=args.lambda_table, settings=settings,
               grid=args.grid, step_deg=args.step_deg, workers=args.workers, dask_address=args.dask_address)
     if args.run:
@@ -341,6 +353,10 @@ def build_parser() -> argparse.ArgumentParser:
     mp.add_argument("--battery-v", type=float, default=None, help="battery voltage for dead time [V] (default 14)")
     mp.add_argument("--knock-uncertainty-z", type=float, default=None,
                     help="retard the knock border by z sigmas of the model's CA50-offset uncertainty (default 1; 0 turns it off)")
+    mp.add_argument("--bench-offset-reach", default=None,
+                    help="carry the bench's MBT offset (bench spark - model MBT in a cell the bench ran clean at MBT) to "
+                         "the cells at that speed, faded to zero over this distance beyond the measured speeds [rpm] "
+                         "(default 2000; 'none' carries nothing)")
     common(mp)
     dask(mp)
     mp.set_defaults(func=cmd_maps, step_deg=None)   # None: the run's step with --run, else 0.5

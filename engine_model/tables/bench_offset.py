@@ -5,17 +5,16 @@ Where the bench ran a grid cell clean at MBT, the table takes the bench's spark 
 cycle model finds in the same cell with the combustion model's burn is a measured error of the model's
 MBT at that speed.  It comes mostly from the combustion model's burn-rate trend over speed (a global
 model trained on a few operating points), which the cells next to the measured one share; leaving it
-only in the measured cell puts a step into the table (on a 16-point design the default run's 8000-rpm
-column ran the bench's 49.4 deg at WOT and the model's 45.0-47.1 at 40-80 % throttle).
+only in the measured cell puts a step between that cell and its neighbours (docs/sections/tables.md).
 
 The carried offset at speed n:
 
 * at the speeds of the measured cells: the mean of (bench spark - model MBT) over that speed's cells;
 * between two measured speeds: linear in speed;
 * beyond the measured range: the nearest measured offset, faded linearly to zero over
-  ``reach_rpm`` (an error the data do not see is not extrapolated further than about one bench
-  spacing; the default 2000 rpm is an assumption of this project, about twice the spacing of
-  Table 2's speeds rounded up to a whole ECU breakpoint).
+  ``reach_rpm`` (an error is not extrapolated far from where it was measured; the default 2000 rpm is
+  an assumption of this project: two breakpoints of the default ECU grid, so the next speed beyond the
+  measured range takes half the offset and the one after none).
 
 It applies to every throttle at that speed (the measured points are at WOT; the offset is taken as a
 function of speed only, the dimension the combustion model's design is thinnest in) and only to the

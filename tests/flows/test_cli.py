@@ -100,3 +100,15 @@ def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
     assert main(["maps", "--model", str(model), "--out", str(out), "--knock-uncertainty-z", "-1"]) == 2
     assert "MapSettings.knock_uncertainty_z = -1.0" in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("reach, message", [("-5", "MapSettings.bench_offset_reach_rpm = -5.0"),
+                                            ("far", "--bench-offset-reach 'far': expected a distance in rpm")])
+def test_mbc_maps_bench_offset_reach_is_checked_before_any_work(tmp_path, capsys, reach, message):
+    from engine_model.tables import PriorModel
+
+    model = PriorModel().save(tmp_path / "prior.json")
+    out = tmp_path / "maps"
+    assert main(["maps", "--model", str(model), "--out", str(out), "--bench-offset-reach", reach]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists()
