@@ -94,6 +94,8 @@ class CampaignSettings:
                              "operating points are needed (one spark sweep each)")
         if not 0.5 <= self.eta_trans <= 1.0:
             raise ValueError(f"CampaignSettings.eta_trans = {self.eta_trans!r} must lie in [0.5, 1]")
+        if isinstance(self.doe_seed, bool) or not isinstance(self.doe_seed, (int, np.integer)) or self.doe_seed < 0:
+            raise ValueError(f"CampaignSettings.doe_seed = {self.doe_seed!r} must be an integer >= 0")
 
 
 @dataclass

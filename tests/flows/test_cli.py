@@ -91,6 +91,13 @@ def test_mbc_run_refuses_a_stage_whose_inputs_are_missing(tmp_path, capsys):
     assert not out.exists() and not (tmp_path / "empty.partial").exists()
 
 
+def test_mbc_run_refuses_a_negative_doe_seed_before_any_work(tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["run", "--quick", "--doe-seed", "-1", "--out", str(out)]) == 2
+    assert "CampaignSettings.doe_seed = -1 must be an integer >= 0" in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "run.partial").exists()
+
+
 def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
     """`--knock-uncertainty-z` is passed to MapSettings: a bad value is refused by name before any cluster starts."""
     from engine_model.tables import PriorModel
