@@ -38,8 +38,7 @@ from engine_model.sim.prepare import SolverSettings
 from engine_model.spec import EngineSpec
 
 __all__ = ["CampaignSettings", "CampaignResult", "run_campaign", "identification_bdur_nodes", "identification_error",
-           "holdout_error",
-           "MIN_IDENTIFIED", "measure_with_resweeps", "MAX_RESWEEPS"]
+           "holdout_error", "MIN_IDENTIFIED", "measure_with_resweeps", "MAX_RESWEEPS"]
 
 #: Fewest identified operating points a global model is fitted on (one spark sweep each).
 MIN_IDENTIFIED = 6
