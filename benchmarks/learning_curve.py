@@ -1,6 +1,6 @@
 """Measure the learning curve of issue 5 (map accuracy vs bench points per DOE design).
 
-1. The virtual bench (truth engine, noise-free, QUICK_SOLVER) runs the 594-point
+1. The virtual bench (truth engine, noise-free, QUICK_SOLVER) runs the default (648-point)
    hold-out grid once: its status (ok / knock_abort / low_load_abort) defines the
    feasible map.
 2. identify = truth law + identification noise (sigma 1.5 deg BDUR10-90, 0.4 m;

@@ -42,8 +42,12 @@ __all__ = ["DESIGNS", "bench_identify", "bench_feasibility", "design_plan", "gri
 #: Designs :func:`design_plan` knows.
 DESIGNS = ("grid", "d_optimal", "d_optimal_feasible", "sobol", "lhs")
 
-#: Default design space: the paper's map, spark 20 deg retarded to 5 deg advanced from the MBT prior.
-BOUNDS = {"throttle_pct": (5.0, 100.0), "speed_rpm": (3000.0, 13000.0)}
+#: Default design space: throttle 5-100 %, speed 2000-13000 rpm, spark 20 deg retarded to 5 deg advanced
+#: from the MBT prior.  The ECU tables span 1000-13000 rpm; below the lowest speed the DOE measured, the
+#: global model carries the burn of that speed flat, and judged on the virtual truth the tables knocked
+#: mostly at 2000-3000 rpm when the DOE started at 3000 (docs/history.md, 2026-11-28).  1000 rpm stays out:
+#: the knock screen leaves only the lightest loads runnable there.
+BOUNDS = {"throttle_pct": (5.0, 100.0), "speed_rpm": (2000.0, 13000.0)}
 SPARK_OFFSET = (-20.0, 5.0)
 FACTORS3 = ("throttle_pct", "speed_rpm", "spark_deg_btdc")
 
@@ -129,9 +133,10 @@ def design_plan(design: str, n: int, seed: int = 0, bounds: dict | None = None,
     return absolute_spark(p)
 
 
-def holdout_grid(throttle_pct=(5, 10, 15, 20, 30, 40, 60, 80, 100), speed_rpm=tuple(range(3000, 13001, 1000)),
+def holdout_grid(throttle_pct=(5, 10, 15, 20, 30, 40, 60, 80, 100), speed_rpm=tuple(range(2000, 13001, 1000)),
               spark_offset=(-20, -15, -10, -5, 0, 5)) -> pd.DataFrame:
-    """Held-out test points: an ECU-style grid x spark offsets around the MBT prior (594 points by default)."""
+    """Held-out test points: an ECU-style grid x spark offsets around the MBT prior (648 points by default),
+    over the speeds of :data:`BOUNDS`."""
     p = doe.full_factorial(speed_rpm=speed_rpm, throttle_pct=throttle_pct, spark_deg_btdc=spark_offset)
     return absolute_spark(p)
 
