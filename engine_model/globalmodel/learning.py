@@ -133,10 +133,15 @@ def design_plan(design: str, n: int, seed: int = 0, bounds: dict | None = None,
     return absolute_spark(p)
 
 
-def holdout_grid(throttle_pct=(5, 10, 15, 20, 30, 40, 60, 80, 100), speed_rpm=tuple(range(2000, 13001, 1000)),
+def holdout_grid(throttle_pct=(5, 10, 15, 20, 30, 40, 60, 80, 100), speed_rpm=None,
               spark_offset=(-20, -15, -10, -5, 0, 5)) -> pd.DataFrame:
-    """Held-out test points: an ECU-style grid x spark offsets around the MBT prior (648 points by default),
-    over the speeds of :data:`BOUNDS`."""
+    """Held-out test points: an ECU-style grid x spark offsets around the MBT prior (648 points by default).
+
+    ``speed_rpm`` None: every 1000 rpm over the speeds of :data:`BOUNDS`.
+    """
+    if speed_rpm is None:
+        lo, hi = BOUNDS["speed_rpm"]
+        speed_rpm = tuple(range(int(lo), int(hi) + 1, 1000))
     p = doe.full_factorial(speed_rpm=speed_rpm, throttle_pct=throttle_pct, spark_deg_btdc=spark_offset)
     return absolute_spark(p)
 
