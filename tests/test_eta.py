@@ -5,7 +5,7 @@ import pytest
 from flows.eta import REFERENCE_STAGE_S, expected_stage_s, minutes
 from flows.settings import QUICK, RunSettings
 
-DEFAULT = dict(quick=False, step_deg=0.5, bench_points=7, doe_points=10, map_cells=143, workers=2)
+DEFAULT = dict(quick=False, step_deg=0.5, bench_points=7, doe_points=16, map_cells=143, workers=2)
 
 
 @pytest.mark.parametrize("stage", ["calibration", "model", "maps", "gap"])
