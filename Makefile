@@ -26,11 +26,15 @@ install: $(STAMP)
 run: $(STAMP)
 	$(BIN)/mbc run
 
+# Two pytest-xdist workers (CI has 2 cores): each test module is one group and runs on one worker, so its
+# module fixtures are built once; the tests of the shared quick run form one group (tests/conftest.py).
+XDIST := -n 2 --dist loadgroup
+
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest $(XDIST)
 
 test-fast: $(STAMP)
-	$(BIN)/python -m pytest -m "not slow and not integration"
+	$(BIN)/python -m pytest $(XDIST) -m "not slow and not integration"
 
 bench: $(STAMP)
 	$(BIN)/python benchmarks/bench_cycle.py

@@ -5,7 +5,8 @@ Prefect server, no Dask cluster; under 2 minutes); ``make test`` runs everything
 ``tests/flows/`` is marked ``integration`` here (real Prefect, real Dask, ``mbc`` subprocesses).
 
 ``prefect_api``: one real Prefect API server (Prefect's test harness: a
-uvicorn subprocess on a temporary database) for the whole test session,
+uvicorn subprocess on a temporary database) for the whole test session (one
+per pytest-xdist worker that asks for it),
 exported through ``PREFECT_API_URL`` so that Dask worker processes and ``mbc``
 subprocesses started by a test talk to the same server (docs/stack.md).
 """
@@ -24,11 +25,17 @@ import pandas as pd
 import pytest
 
 
+@pytest.hookimpl(tryfirst=True)       # before pytest-xdist reads the groups
 def pytest_collection_modifyitems(config, items):
     flows_dir = os.path.join(os.path.dirname(__file__), "flows") + os.sep
     for item in items:
         if str(item.fspath).startswith(flows_dir):
             item.add_marker(pytest.mark.integration)
+        # Under pytest-xdist (``--dist loadgroup``, how ``make test`` runs) a group runs on one worker, so a
+        # module-scoped fixture is built once: each module is a group, and every test that reads the shared
+        # quick run joins one group whichever module it is in, so the run is built once.
+        shared = {"quick_run", "run_copy"} & set(getattr(item, "fixturenames", ()))
+        item.add_marker(pytest.mark.xdist_group("quick_run" if shared else item.nodeid.split("::")[0]))
 
 
 @pytest.fixture(scope="session")
