@@ -67,3 +67,42 @@ def test_identification_plane_holds_the_burn_of_every_sweep():
     assert identification_bdur_nodes(3000.0, n_b)[0] < identification_bdur_nodes(8000.0, n_b)[0]
     with pytest.raises(ValueError, match="speed_rpm"):
         identification_bdur_nodes(0.0, n_b)
+
+
+@pytest.mark.slow
+def test_gp_alone_is_not_worse_than_the_cv_choice_of_family_on_campaign_sized_designs():
+    # Why the campaign fits the Gaussian process alone (CampaignSettings.families): with 16-20 identified
+    # sweeps the 5-fold CV errors of the polynomial and the GP differ by less than their spread, so the CV
+    # choice follows the noise draw.  On 40 synthetic campaigns (two designs x two sizes x ten seeds) whose
+    # identification error has the measured ridge structure (phasing_noisy_truth), the error of what the
+    # tables follow (the ignition-to-CA50 angle, at >= 30 % throttle where MBT or the knock border set the
+    # spark) must be no larger on average with the GP alone, and its worst trial better.  Measured when
+    # written: mean 6.03 vs 6.47 deg, worst 7.97 vs 11.19 deg; the CV picked the polynomial for an output in
+    # 12 of 40 trials, and the GP alone was better in 9 of them.  Either check fails if the CV choice is
+    # the better default.
+    from engine_model.globalmodel import learning as L
+    from engine_model.globalmodel.mapmodel import MapModel, ca50_offset_deg
+
+    assert CampaignSettings().families == ("gp",)
+    with pytest.raises(ValueError, match="families"):
+        CampaignSettings(families=("spline",))
+    with pytest.raises(ValueError, match="families"):
+        CampaignSettings(families=())
+
+    law = BurnLaw()
+    test = L.holdout_grid()
+    test = test[test["throttle_pct"] >= 30].reset_index(drop=True)
+    y = law.predict(test)
+    off_true = ca50_offset_deg(y["bdur_10_90_deg"].to_numpy(), y["wiebe_m"].to_numpy())
+    err = {"cv": [], "gp": []}
+    for design in ("d_optimal", "sobol"):
+        for n in (16, 20):
+            for seed in range(10):
+                ident = L.phasing_noisy_truth(law, seed=seed)(L.design_plan(design, n, seed))
+                for name, fams in (("cv", ("poly", "gp")), ("gp", ("gp",))):
+                    p = MapModel(families=fams, factors=L.FACTORS3, seed=seed).fit(ident).predict(test)
+                    e = ca50_offset_deg(p["bdur_10_90_deg"].to_numpy(), p["wiebe_m"].to_numpy()) - off_true
+                    err[name].append(float(np.sqrt(np.mean(e ** 2))))
+    cv, gp = np.array(err["cv"]), np.array(err["gp"])
+    assert gp.mean() <= cv.mean(), (gp.mean(), cv.mean())
+    assert gp.max() < cv.max(), (gp.max(), cv.max())
