@@ -34,7 +34,6 @@ from engine_model.calibration.sweeps import choose_operating_points, identify_sw
 from engine_model.doe import QUICK_SOLVER, feasibility
 from engine_model.globalmodel import learning
 from engine_model.globalmodel.mapmodel import MapModel, fit_map_model
-from engine_model.globalmodel.surrogates import FAMILIES
 from engine_model.sim.prepare import SolverSettings
 from engine_model.spec import EngineSpec
 
@@ -75,13 +74,6 @@ class CampaignSettings:
         Learning curve: design sizes and seeds.
     holdout : dict
         Keyword arguments of :func:`engine_model.globalmodel.learning.holdout_grid`.
-    families : tuple of str
-        Model families of the global model; with more than one, each output takes the family with the
-        lower K-fold CV error (the learning curve compares designs with both, as before).  Default: the
-        Gaussian process alone.  With 16-20 sweeps the 5-fold CV errors of the polynomial and the GP differ by less than their own spread
-        (e.g. m 0.98 against 0.98 deg), so the choice between them followed the noise draw, and where it
-        picked the polynomial the CA50 offset over the hold-out grid at >= 30 % throttle was 4-13 deg off the
-        hidden law against 2.7-3.8 with the GP (docs/sections/globalmodel.md).
     """
 
     eta_trans: float = 0.95
@@ -94,13 +86,8 @@ class CampaignSettings:
     learning_sizes: tuple = (12, 16, 24, 32, 48, 64)
     learning_seeds: tuple = (0, 1, 2)
     holdout: dict = field(default_factory=dict)
-    families: tuple = ("gp",)
 
     def __post_init__(self):
-        fams = tuple(self.families) if isinstance(self.families, (tuple, list)) else ()
-        if not fams or any(f not in FAMILIES for f in fams):
-            raise ValueError(f"CampaignSettings.families = {self.families!r}: give a non-empty tuple from "
-                             f"{sorted(FAMILIES)}")
         if self.doe_points < MIN_IDENTIFIED:
             raise ValueError(f"CampaignSettings.doe_points = {self.doe_points!r}: at least {MIN_IDENTIFIED} "
                              "operating points are needed (one spark sweep each)")
@@ -139,8 +126,7 @@ class CampaignResult:
                f"Joint spark-sweep identification at {ide['points']} of {ide['of']} operating points against the "
                f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
                f"m RMSE {ide['m_rmse']:.2f} (bias {ide['m_bias']:+.2f}).",
-               ("Global model (chosen per output by K-fold CV: " if len(settings.families) > 1 else
-                "Global model (")
+               "Global model (chosen per output by K-fold CV: "
                + ", ".join(f"{k} {v}" for k, v in dict(self.model.chosen_).items())
                + f"); error against the hidden law "
                f"on the {held['points']} runnable points of the {held['of']}-point hold-out grid: BDUR10-90 "
@@ -364,7 +350,7 @@ def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
                             eta_trans=st.eta_trans)
     ident, id_err = identification_error(ident, law)
     good, note = training_points(ident)
-    model = fit_map_model(good, spec=spec, families=tuple(st.families))
+    model = fit_map_model(good, spec=spec)
 
     # where can the truth engine run?  The hold-out grid once through the noise-free virtual bench (quick
     # solver); the map is scored there, and the learning curve loses the points the bench would abort
