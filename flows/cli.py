@@ -94,6 +94,8 @@ def cmd_run(args) -> int:
         changes["step_deg"] = args.step_deg
     if args.doe_points is not None:
         changes["doe_points"] = args.doe_points
+    if args.doe_fill_points is not None:
+        changes["doe_fill_points"] = args.doe_fill_points
     if args.doe_seed is not None:
         changes["doe_seed"] = args.doe_seed
     if args.stages:
@@ -311,7 +313,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--bench", default=None, help="bench data CSV/Parquet (default: packaged Table 2)")
     r.add_argument("--out", default=None, help="output folder (default results/<run-id>/); tables in OUT/maps/")
     r.add_argument("--eta-trans", type=float, default=0.95, help="transmission efficiency [-] (default 0.95)")
-    r.add_argument("--doe-points", type=int, default=None, help="operating points (spark sweeps) on the virtual bench (default 16)")
+    r.add_argument("--doe-points", type=int, default=None,
+                   help="operating points (spark sweeps) on the virtual bench (default 16; --quick 10)")
+    r.add_argument("--doe-fill-points", type=int, default=None,
+                   help="of --doe-points, those placed where the D-optimal ones leave the largest gaps "
+                        "(maximin distance; default 0)")
     r.add_argument("--doe-seed", type=int, default=None,
                    help="seed of the virtual bench's design and measurement noise (default 0)")
     r.add_argument("--throttle", default=None, help="ECU throttle breakpoints [%%] ('0,5,10' or 'start:stop:step')")

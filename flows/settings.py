@@ -36,6 +36,7 @@ class RunSettings:
     calibration: airflow-match and identification settings (grid sizes, iterations).
     doe_points, doe_seed, spark_offsets, doe_bounds: operating points on the virtual bench (D-optimal over
         throttle x speed from screened candidates) and the spark sweep run at each, offsets from the MBT prior [deg].
+    doe_fill_points: of doe_points, those placed where the D-optimal ones leave the largest gaps (default 0).
     ident_grid: (n_bdur, n_m) of the cheap identification at the DOE points.
     map_throttle, map_speed: ECU breakpoints ('0,5,10' or 'start:stop:step'; None = EcuGrid default).
     learning_sizes, learning_seeds: learning curve of DOE designs.
@@ -47,6 +48,7 @@ class RunSettings:
     step_deg: float = 0.5
     calibration: CalibrationSettings = field(default_factory=CalibrationSettings)
     doe_points: int = 16
+    doe_fill_points: int = 0
     spark_offsets: tuple = (-15, -10, -5, 0, 5)
     doe_bounds: dict = field(default_factory=dict)
     doe_seed: int = 0
@@ -72,7 +74,8 @@ class RunSettings:
     def campaign(self) -> CampaignSettings:
         """The virtual-bench campaign's settings."""
         return CampaignSettings(eta_trans=self.eta_trans, step_deg=self.step_deg, doe_points=self.doe_points,
-                                spark_offsets=tuple(self.spark_offsets), doe_bounds=dict(self.doe_bounds),
+                                doe_fill_points=self.doe_fill_points, spark_offsets=tuple(self.spark_offsets),
+                                doe_bounds=dict(self.doe_bounds),
                                 doe_seed=self.doe_seed, ident_grid=tuple(self.ident_grid),
                                 learning_sizes=tuple(self.learning_sizes), learning_seeds=tuple(self.learning_seeds),
                                 holdout=dict(self.holdout))

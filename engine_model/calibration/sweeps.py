@@ -78,29 +78,35 @@ SPARK_SLOPES = tuple((kb, km) for kb in (0.0, 0.002, 0.004, 0.006, 0.008) for km
 
 
 def choose_operating_points(n: int, feasible: Callable[[pd.DataFrame], np.ndarray] | None = None, seed: int = 0,
-                            bounds: dict | None = None, levels: int = 7) -> pd.DataFrame:
-    """D-optimal (quadratic model) operating points over (throttle, speed).
+                            bounds: dict | None = None, levels: int = 7, fill: int = 0) -> pd.DataFrame:
+    """D-optimal (quadratic model) operating points over (throttle, speed), optionally with space-filling ones.
 
     Parameters
     ----------
     n : int
-        Number of operating points (>= 6, the terms of a 2-factor quadratic).
+        Number of operating points; ``n - fill`` D-optimal ones (>= 6, the terms of a 2-factor quadratic).
     feasible : callable(points) -> bool array, optional
         Screen of the ``levels`` x ``levels`` candidate grid; it gets the candidates at the MBT-prior
         spark and target lambda (``speed_rpm, throttle_pct, spark_deg_btdc, lambda``).
     seed : int
     bounds : dict, optional
         ``{"throttle_pct": (lo, hi), "speed_rpm": (lo, hi)}``; default :data:`engine_model.globalmodel.learning.BOUNDS`.
+    fill : int
+        Of the ``n``, points added after the D-optimal ones where the design is sparsest
+        (:func:`engine_model.doe.maximin_augment` over the screened candidates).
 
     Returns
     -------
     DataFrame
-        ``throttle_pct, speed_rpm`` (n rows).
+        ``throttle_pct, speed_rpm`` (n rows; the D-optimal ones first).
     """
     from engine_model.globalmodel.learning import BOUNDS
     b = dict(BOUNDS if bounds is None else bounds)
-    if n < 6:
-        raise ValueError(f"choose_operating_points: n = {n}; a quadratic over (throttle, speed) needs >= 6 points")
+    if isinstance(fill, bool) or not isinstance(fill, (int, np.integer)) or fill < 0:
+        raise ValueError(f"choose_operating_points: fill = {fill!r} must be an integer >= 0")
+    if n - fill < 6:
+        raise ValueError(f"choose_operating_points: n = {n} with fill = {fill} leaves {n - fill} D-optimal points; "
+                         "a quadratic over (throttle, speed) needs >= 6")
     g = np.meshgrid(np.linspace(*b["speed_rpm"], levels), np.linspace(*b["throttle_pct"], levels), indexing="ij")
     cand = pd.DataFrame({"speed_rpm": g[0].ravel(), "throttle_pct": g[1].ravel()})
     if feasible is not None:
@@ -110,9 +116,12 @@ def choose_operating_points(n: int, feasible: Callable[[pd.DataFrame], np.ndarra
         cand = cand[np.asarray(feasible(probe), bool)].reset_index(drop=True)
         if len(cand) < n:
             raise ValueError(f"choose_operating_points: only {len(cand)} feasible candidates for {n} points")
-    p = doe.d_optimal(n, model="quadratic", candidates=cand, bounds={k: b[k] for k in ("throttle_pct", "speed_rpm")},
-                      seed=seed)
-    return p[["throttle_pct", "speed_rpm"]].reset_index(drop=True)
+    b2 = {k: b[k] for k in ("throttle_pct", "speed_rpm")}
+    p = doe.d_optimal(n - fill, model="quadratic", candidates=cand, bounds=b2, seed=seed)
+    p = p[["throttle_pct", "speed_rpm"]].reset_index(drop=True)
+    if fill:
+        p = pd.concat([p, doe.maximin_augment(p, cand, fill, b2)[["throttle_pct", "speed_rpm"]]], ignore_index=True)
+    return p
 
 
 def sweep_plan(op_points: pd.DataFrame, offsets: Sequence[float] = DEFAULT_OFFSETS) -> pd.DataFrame:

@@ -42,7 +42,8 @@ from engine_model.priors import lambda_target, spark_estimate
 from engine_model.spec import default_spec
 
 __all__ = ["DEFAULT_BOUNDS", "FACTORS", "PHYSICAL_RANGES", "full_factorial", "latin_hypercube", "sobol",
-           "model_matrix", "d_efficiency", "d_optimal", "bench_order", "wiebe_grid", "check_range", "finish_plan"]
+           "model_matrix", "d_efficiency", "d_optimal", "maximin_augment", "bench_order", "wiebe_grid", "check_range",
+           "finish_plan"]
 
 #: Factors a space-filling or optimal design may vary, in canonical order.
 FACTORS = ("speed_rpm", "throttle_pct", "spark_deg_btdc", "lambda")
@@ -401,6 +402,55 @@ def d_optimal(n: int = 20, model: str = "quadratic", candidates: pd.DataFrame | 
                    {"generator": "d_optimal", "seed": seed, "bounds": b, "model": model})
     plan.attrs["d_efficiency"] = d_efficiency(plan, model, b)
     return plan
+
+
+def maximin_augment(design: pd.DataFrame, candidates: pd.DataFrame, k: int, bounds: Mapping) -> pd.DataFrame:
+    """Add ``k`` candidates to ``design``, each the one farthest from every point already chosen.
+
+    Greedy maximin-distance augmentation (Johnson, Moore and Ylvisaker 1990, J. Stat. Plan. Inference 26:
+    maximin designs spread points so that no region is far from data): in coded factors (each bound mapped to
+    [-1, 1]) the candidate whose nearest design point is farthest joins the design, then the next.  A
+    D-optimal design for a quadratic surface puts its points on three levels per factor (edges and centre);
+    a Gaussian-process map model is uncertain in the gaps between them, which these points fill.
+
+    Parameters
+    ----------
+    design : DataFrame
+        Points already chosen (columns = the factors of ``bounds``).
+    candidates : DataFrame
+        Points that may be added (same columns); candidates equal to a design point are skipped.
+    k : int
+        Points to add (>= 0).
+    bounds : dict {column: (low, high)}
+        Factors and their coding ranges.
+
+    Returns
+    -------
+    DataFrame
+        The added points (``k`` rows, the factor columns, in the order chosen).
+    """
+    b = {key: (float(lo), float(hi)) for key, (lo, hi) in dict(bounds).items()}
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 0:
+        raise ValueError(f"maximin_augment: k = {k!r} must be an integer >= 0")
+    for name, df in (("design", design), ("candidates", candidates)):
+        missing = [key for key in b if key not in df.columns]
+        if missing:
+            raise ValueError(f"maximin_augment: {name} lacks the factor column(s) {missing}")
+    cand = candidates[list(b)].astype(float).drop_duplicates().reset_index(drop=True)
+    xc, xd = _coded(cand, b), _coded(design[list(b)].astype(float), b)
+    d = np.min(np.linalg.norm(xc[:, None, :] - xd[None, :, :], axis=2), axis=1) if len(xd) else \
+        np.full(len(cand), np.inf)
+    free = d > 1e-9
+    if int(free.sum()) < k:
+        raise ValueError(f"maximin_augment: only {int(free.sum())} candidates differ from the design; "
+                         f"{k} asked")
+    chosen = []
+    for _ in range(k):
+        j = int(np.argmax(np.where(free, d, -np.inf)))
+        chosen.append(j)
+        free[j] = False
+        d = np.minimum(d, np.linalg.norm(xc - xc[j], axis=1))
+    return cand.iloc[chosen].reset_index(drop=True)
 
 
 # --------------------------------------------------------------------------- model-driven plans

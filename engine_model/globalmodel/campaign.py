@@ -60,7 +60,11 @@ class CampaignSettings:
     step_deg : float
         Crank-angle step of the bench measurements and the identification [deg].
     doe_points : int
-        Operating points (one spark sweep each), D-optimal over throttle x speed from screened candidates.
+        Operating points (one spark sweep each) over throttle x speed from screened candidates: D-optimal for a
+        quadratic surface, the last ``doe_fill_points`` of them where that design leaves the largest gaps.
+    doe_fill_points : int
+        Of ``doe_points``, the space-filling ones (:func:`engine_model.doe.maximin_augment`); 0 by default
+        (4 of 20 were tried: docs/sections/globalmodel.md).
     spark_offsets : tuple of float
         Sparks of each sweep relative to the MBT prior [deg].
     doe_bounds : dict, optional
@@ -79,6 +83,7 @@ class CampaignSettings:
     eta_trans: float = 0.95
     step_deg: float = 0.5
     doe_points: int = 16
+    doe_fill_points: int = 0
     spark_offsets: tuple = (-15, -10, -5, 0, 5)
     doe_bounds: dict = field(default_factory=dict)
     doe_seed: int = 0
@@ -91,6 +96,10 @@ class CampaignSettings:
         if self.doe_points < MIN_IDENTIFIED:
             raise ValueError(f"CampaignSettings.doe_points = {self.doe_points!r}: at least {MIN_IDENTIFIED} "
                              "operating points are needed (one spark sweep each)")
+        fill = self.doe_fill_points
+        if isinstance(fill, bool) or not isinstance(fill, (int, np.integer)) or not 0 <= fill <= self.doe_points - 6:
+            raise ValueError(f"CampaignSettings.doe_fill_points = {fill!r} must be an integer in [0, doe_points - 6 "
+                             f"= {self.doe_points - 6}] (the D-optimal part needs >= 6 points)")
         if not 0.5 <= self.eta_trans <= 1.0:
             raise ValueError(f"CampaignSettings.eta_trans = {self.eta_trans!r} must lie in [0.5, 1]")
         if isinstance(self.doe_seed, bool) or not isinstance(self.doe_seed, (int, np.integer)) or self.doe_seed < 0:
@@ -119,9 +128,10 @@ class CampaignResult:
         meas, ide, held = self.measured, self.identification_error, self.holdout_error
         n_re = int(self.plan["op_id"].nunique() - len(self.operating_points)) if "op_id" in self.plan else 0
         again = f" (with {n_re} sweep(s) repeated retarded after knocking)" if n_re else ""
+        fill = f", {settings.doe_fill_points} of them space-filling" if settings.doe_fill_points else ""
         out = [f"Virtual bench: {len(self.operating_points)} operating points (D-optimal over throttle x speed from "
-               f"screened candidates, seed {settings.doe_seed}) x spark offsets {list(settings.spark_offsets)} deg = "
-               f"{len(meas)} bench points{again}; status "
+               f"screened candidates{fill}, seed {settings.doe_seed}) x spark offsets "
+               f"{list(settings.spark_offsets)} deg = {len(meas)} bench points{again}; status "
                + ", ".join(f"{k} {n}" for k, n in meas["status"].value_counts().items()) + ".",
                f"Joint spark-sweep identification at {ide['points']} of {ide['of']} operating points against the "
                f"hidden law: BDUR10-90 RMSE {ide['bdur_rmse_deg']:.2f} deg (bias {ide['bdur_bias_deg']:+.2f}), "
@@ -338,7 +348,7 @@ def run_campaign(spec: EngineSpec, settings: CampaignSettings | None = None,
         return feasibility(pts, evaluate=ev_feas)["feasible"].to_numpy(bool)
 
     ops = choose_operating_points(st.doe_points, feasible=feasible, seed=st.doe_seed,
-                                  bounds=dict(st.doe_bounds) if st.doe_bounds else None)
+                                  bounds=dict(st.doe_bounds) if st.doe_bounds else None, fill=st.doe_fill_points)
     plan, meas = measure_with_resweeps(bench, sweep_plan(ops, offsets=st.spark_offsets), make("vbench", full))
     ok = meas[meas["status"] == "ok"].reset_index(drop=True)
     if len(ok) < MIN_IDENTIFIED:

@@ -171,6 +171,59 @@ def test_d_optimal_over_given_candidates_and_size_checks():
         d_optimal(10, "cubic")
 
 
+def _code(df, b):
+    return np.column_stack([2 * (df[k].to_numpy(float) - lo) / (hi - lo) - 1 for k, (lo, hi) in b.items()])
+
+
+def _fill_distance(design, cand, b):
+    """Largest distance (coded factors) from a candidate to its nearest design point: the worst gap."""
+    xc, xd = _code(cand, b), _code(design, b)
+    return float(np.max(np.min(np.linalg.norm(xc[:, None] - xd[None], axis=2), axis=1)))
+
+
+def test_maximin_augment_fills_the_largest_gap_first():
+    b = {"speed_rpm": (2000.0, 13000.0), "throttle_pct": (5.0, 100.0)}
+    cand = full_factorial(speed_rpm=np.linspace(2000, 13000, 7), throttle_pct=np.linspace(5, 100, 7))
+    corners = full_factorial(speed_rpm=[2000, 13000], throttle_pct=[5, 100])
+    first = doe.maximin_augment(corners, cand, 1, b)
+    # the one candidate farthest from all four corners is the centre (coded distance sqrt 2)
+    assert first[["speed_rpm", "throttle_pct"]].to_numpy().tolist() == [[7500.0, 52.5]]
+    # each added point is, when added, the candidate farthest from the design so far; the worst gap never grows
+    added = doe.maximin_augment(corners, cand, 6, b)
+    design, gaps = corners[list(b)], [_fill_distance(corners, cand, b)]
+    for _, row in added.iterrows():
+        d = np.min(np.linalg.norm(_code(cand, b)[:, None] - _code(design, b)[None], axis=2), axis=1)
+        assert np.linalg.norm(_code(row.to_frame().T, b) - _code(design, b), axis=1).min() == pytest.approx(d.max())
+        design = pd.concat([design, row.to_frame().T], ignore_index=True)
+        gaps.append(_fill_distance(design, cand, b))
+    assert all(g1 <= g0 + 1e-12 for g0, g1 in zip(gaps, gaps[1:])) and gaps[-1] < gaps[0]
+    assert not pd.concat([corners[list(b)], added]).duplicated().any()
+    assert doe.maximin_augment(corners, cand, 0, b).empty
+    with pytest.raises(ValueError, match="only 45 candidates differ"):
+        doe.maximin_augment(corners, cand, 46, b)
+    with pytest.raises(ValueError, match="k = -1"):
+        doe.maximin_augment(corners, cand, -1, b)
+    with pytest.raises(ValueError, match="lacks the factor"):
+        doe.maximin_augment(corners.drop(columns=["throttle_pct"]), cand, 1, b)
+
+
+def test_space_filling_points_close_the_gaps_the_d_optimal_design_leaves():
+    """The campaign's design (16 D-optimal + 4 filling) against spending the same 20 points D-optimally:
+    the D-optimal design keeps three speed levels and leaves a wide band without a point."""
+    from engine_model.calibration.sweeps import choose_operating_points
+    b = {"throttle_pct": (5.0, 100.0), "speed_rpm": (2000.0, 13000.0)}
+    cand = full_factorial(speed_rpm=np.linspace(2000, 13000, 7), throttle_pct=np.linspace(5, 100, 7))
+    for seed in (0, 1, 2):
+        filled = choose_operating_points(20, bounds=b, seed=seed, fill=4)
+        dopt = choose_operating_points(20, bounds=b, seed=seed)
+        assert len(filled) == 20 and not filled.duplicated().any()
+        assert _fill_distance(filled, cand, b) < _fill_distance(dopt, cand, b)
+        # the first 16 are the D-optimal design of 16
+        pd.testing.assert_frame_equal(filled.iloc[:16], choose_operating_points(16, bounds=b, seed=seed))
+    with pytest.raises(ValueError, match="leaves 5 D-optimal points"):
+        choose_operating_points(9, bounds=b, fill=4)
+
+
 # --------------------------------------------------------------------------- spark sweeps
 
 PAIRS = [(20.0, 8000.0), (100.0, 9000.0), (60.0, 5000.0)]

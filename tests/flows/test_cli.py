@@ -96,6 +96,11 @@ def test_mbc_run_refuses_a_negative_doe_seed_before_any_work(tmp_path, capsys):
     assert main(["run", "--quick", "--doe-seed", "-1", "--out", str(out)]) == 2
     assert "CampaignSettings.doe_seed = -1 must be an integer >= 0" in capsys.readouterr().err
     assert not out.exists() and not (tmp_path / "run.partial").exists()
+    # the D-optimal part of the design keeps the 6 points a quadratic needs
+    assert main(["run", "--quick", "--doe-fill-points", "5", "--out", str(out)]) == 2
+    assert "CampaignSettings.doe_fill_points = 5 must be an integer in [0, doe_points - 6 = 4]" \
+        in capsys.readouterr().err
+    assert not out.exists() and not (tmp_path / "run.partial").exists()
 
 
 def test_mbc_maps_knock_uncertainty_z_reaches_the_settings(tmp_path, capsys):
