@@ -19,6 +19,8 @@ stays free of both.
 from __future__ import annotations
 
 import argparse
+import faulthandler
+import signal
 import sys
 import time
 from pathlib import Path
@@ -468,6 +470,8 @@ def main(argv=None) -> int:
     from flows.lifeline import is_stop, stop_signals
 
     args = build_parser().parse_args(argv)
+    if hasattr(faulthandler, "register"):   # `kill -USR1 <pid>` prints every thread's stack: where a run hangs
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         with stop_signals():   # Ctrl-C and SIGTERM: KeyboardInterrupt once, clean-up, one line (flows/lifeline.py)
             return args.func(args)

@@ -48,6 +48,7 @@ def die_with_parent(sig: int = signal.SIGTERM):
 
 _SIGNALLED: list[int] = []   # signals seen by stop_signals() in this process
 _HANDLER: list = []          # the handler stop_signals() installed, while it is active
+_DEFERRED: list[bool] = []   # non-empty inside deferred_stops(): a stop is recorded, not raised
 
 
 def is_stop(exc: BaseException | None) -> bool:
@@ -88,6 +89,8 @@ def stop_signals():
             os._exit(130)
         _SIGNALLED.append(signum)
         hush_workers()
+        if _DEFERRED:   # inside a library's locks (deferred_stops): checkpoint() raises it
+            return
         raise Stop(signal.Signals(signum).name)
 
     old = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -107,6 +110,24 @@ def stop_signals():
         sys.unraisablehook = old_hook
         for s, h in old.items():
             signal.signal(s, h)
+
+
+@contextlib.contextmanager
+def deferred_stops():
+    """Within: a stop signal is recorded and the workers hushed, but nothing is raised; :func:`checkpoint` raises.
+
+    An exception raised by a signal handler lands at an arbitrary bytecode of the main thread.  Where that
+    thread holds a lock shared with another thread, it can leave the lock held for good: Dask's
+    ``as_completed`` takes a condition lock that its event-loop thread also takes to report a finished
+    future, and a stop landing between the acquire and the ``with`` block freezes the event loop, so the
+    clean-up that needs it (closing the cluster) never returns.  A loop that waits on such a library runs
+    inside this context and polls :func:`checkpoint` between short waits.  A second signal still exits at once.
+    """
+    _DEFERRED.append(True)
+    try:
+        yield
+    finally:
+        _DEFERRED.pop()
 
 
 def stop_name() -> str:

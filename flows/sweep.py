@@ -37,7 +37,7 @@ import pandas as pd
 
 from flows import prefect_env  # noqa: F401  (quiet/offline Prefect defaults before prefect is imported)
 from flows import store
-from flows.lifeline import checkpoint, hush_workers, is_stop
+from flows.lifeline import checkpoint, deferred_stops, hush_workers, is_stop
 
 import dask  # noqa: E402
 from prefect import flow, task  # noqa: E402
@@ -56,6 +56,7 @@ TARGET_CHUNK_S = 5.0   # wall time aimed at per Dask task [s]: the top of the is
                        # costs ~0.15-0.3 s of Prefect/Dask overhead (benchmarks/bench_sweep.py: 3 s gave +13 %)
 EST_POINT_S = 0.09     # median cost of one point at 0.5 deg (benchmarks/bench_cycle.py) [s]
 IN_FLIGHT_PER_THREAD = 3  # chunks submitted ahead per worker thread
+POLL_S = 0.05  # [s] wait between looks for a finished chunk (a stop is acted on within it)
 LOW_LEVEL_LOG_LENGTH = 20  # Dask's debug logs of recent messages (see dask_runner)
 
 
@@ -335,10 +336,30 @@ def _collect(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Pat
              counts: dict, failed: dict, timing: dict) -> None:
     """Keep ``window`` chunks in flight; write each finished chunk's part as it arrives (driver side)."""
     checkpoint()   # SIGTERM stops like Ctrl-C inside the flow too (flows/lifeline.py)
+    with deferred_stops():   # a stop must not land inside Dask's or Prefect's locks: it is raised at a checkpoint
+        _collect_loop(pending, submit_next, window, keys, sweep_dir, schema, bar, counts, failed, timing)
+
+
+def _next_done(done_iter):
+    """The next finished future of ``done_iter`` (None when none is left), waiting in short steps.
+
+    Between the steps :func:`checkpoint` raises a stop that arrived meanwhile (the wait runs inside
+    :func:`flows.lifeline.deferred_stops`, so the stop cannot land inside ``as_completed``'s lock).
+    """
+    while not done_iter.has_ready():
+        checkpoint()
+        if done_iter.is_empty():
+            return None
+        time.sleep(POLL_S)
+    return next(done_iter)
+
+
+def _collect_loop(pending: dict, submit_next, window: int, keys: dict, sweep_dir: Path, schema, bar: "Progress",
+                  counts: dict, failed: dict, timing: dict) -> None:
     while len(pending) < window and submit_next():
         pass
     done_iter = dask_as_completed(list(pending), loop=_runner_client().loop)
-    for dfut in done_iter:
+    while (dfut := _next_done(done_iter)) is not None:
         if submit_next():
             done_iter.add(next(reversed(pending)))
         c, fut = pending.pop(dfut)

@@ -81,3 +81,25 @@ def test_a_stop_inside_a_gc_callback_is_not_printed_and_is_raised_at_the_next_sa
             lifeline.checkpoint()
     assert not printed, [repr(u.exc_value) for u in printed]
     assert sys.unraisablehook == printed.append                      # restored on leaving
+
+
+def test_a_stop_inside_deferred_stops_is_raised_only_at_a_checkpoint():
+    """Inside a library's locks (Dask's as_completed) a stop is recorded, and raised where the loop polls."""
+    with lifeline.stop_signals():
+        with lifeline.deferred_stops():
+            os.kill(os.getpid(), signal.SIGTERM)
+            for _ in range(1000):             # without the deferral the handler would raise here
+                pass
+            assert lifeline.stop_name() == "SIGTERM"
+            with pytest.raises(lifeline.Stop, match="SIGTERM"):
+                lifeline.checkpoint()
+
+
+def test_a_stop_after_deferred_stops_is_raised_at_once():
+    with lifeline.stop_signals():
+        with lifeline.deferred_stops():
+            lifeline.checkpoint()
+        with pytest.raises(lifeline.Stop, match="SIGINT"):
+            os.kill(os.getpid(), signal.SIGINT)
+            for _ in range(1000):
+                pass

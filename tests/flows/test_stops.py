@@ -7,6 +7,7 @@ The helper processes are recorded by PID (psutil) while the sweep runs and check
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -109,9 +110,12 @@ def _wait_for_exit(proc, failure: str, timeout: float = 30.0) -> str:
     try:
         return proc.communicate(timeout=timeout)[1]
     except subprocess.TimeoutExpired:
+        with contextlib.suppress(OSError):   # the driver's thread stacks (mbc's SIGUSR1 hook) tell where it hung
+            os.kill(proc.pid, signal.SIGUSR1)
+        time.sleep(2.0)
         os.killpg(proc.pid, signal.SIGKILL)
         err = proc.communicate()[1]
-        raise AssertionError(f"{failure} within {timeout:.0f} s: {err[-3000:]}") from None
+        raise AssertionError(f"{failure} within {timeout:.0f} s: {err[-12000:]}") from None
 
 
 def _stop_and_check(tmp_path: Path, send) -> None:
