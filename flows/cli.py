@@ -19,6 +19,7 @@ stays free of both.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import faulthandler
 import signal
 import sys
@@ -470,7 +471,9 @@ def main(argv=None) -> int:
     from flows.lifeline import is_stop, stop_signals
 
     args = build_parser().parse_args(argv)
-    if hasattr(faulthandler, "register"):   # `kill -USR1 <pid>` prints every thread's stack: where a run hangs
+    # `kill -USR1 <pid>` prints every thread's stack to stderr: where a run hangs.  Not where stderr is no
+    # file (called in-process under a capturing test runner) or the platform has no SIGUSR1.
+    with contextlib.suppress(AttributeError, OSError, ValueError):
         faulthandler.register(signal.SIGUSR1, all_threads=True)
     try:
         with stop_signals():   # Ctrl-C and SIGTERM: KeyboardInterrupt once, clean-up, one line (flows/lifeline.py)
