@@ -17,8 +17,10 @@ Steps of :func:`diagnose`:
 4. which candidate: each fitted together with the base on training folds (all sparks of an operating
    point in one fold) and scored on the held-out fold; the verdict is one of :data:`CATEGORIES`: a claim
    ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the 99 %
-   quantile pure noise leaves), a held-out improvement above the (1 - alpha) quantile of the best
-   improvement pure noise produces on the same design, a held-out remainder within what pure noise leaves
+   quantile pure noise leaves, or the best candidate's improvement over the base and its structural level
+   per channel above the 99 % quantile of that statistic on pure noise: the directed test), a held-out
+   improvement above the (1 - alpha) quantile of the best improvement pure noise produces on the same
+   design, a held-out remainder within what pure noise leaves
    with the same candidate fitted (99 % quantile, :mod:`engine_model.gap.noise`), no parameter at its range
    edge, and no candidate of another kind within the noise threshold that the data cannot reject as the
    truth (a parametric-bootstrap test, :mod:`engine_model.gap.rivals`); otherwise "indistinguishable", "partly explained", "not in the
@@ -40,9 +42,10 @@ from typing import Sequence
 import numpy as np
 import pandas as pd
 
-from engine_model.gap.covariance import DEFAULT_ERROR_MODEL, ErrorModel, get_error_model, whiten_observations
+from engine_model.gap.covariance import (DEFAULT_ERROR_MODEL, ErrorModel, get_error_model, level_columns,
+                                        whiten_observations)
 from engine_model.gap.fitting import (FitProblem, columns_of, fit_all, heldout, make_folds, operating_point_groups)
-from engine_model.gap.noise import expected_noise_chi2, noise_reference
+from engine_model.gap.noise import directed_improvement, expected_noise_chi2, noise_reference, with_level
 
 from engine_model.gap.linear import Linearisation
 from engine_model.gap.localise import coded_map, energy_chain, field_fit, region_table, shape_label
@@ -234,8 +237,9 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     Notes
     -----
     The claim rule needs the gap established and the remainder within noise: nothing is claimed while the
-    base's held-out chi2 lies within the pure-noise 99 % quantile ("no significant gap", even when a
-    candidate's improvement beats its own noise threshold), and a candidate that removes most but not all of
+    base's held-out chi2 lies within the pure-noise 99 % quantile and the directed test (``extra["directed_q"]``,
+    :mod:`engine_model.gap.noise`) fails too ("no significant gap", even when a candidate's improvement beats
+    its own noise threshold), and a candidate that removes most but not all of
     an established gap is reported as "partly explained", never claimed.
     """
     unc = dict(UNCERTAINTY)
@@ -250,8 +254,8 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     prob, folds, cands = su.prob, su.folds, su.cands
     key = (tuple(lin.points["point_id"].astype(str)), tuple(su.pidx), tuple(su.oidx), tuple(folds), tuple(cands),
            k_folds, seed, n_noise, alpha, float(em.burn_scatter_deg), repr(sorted((em.model_error or {}).items())),
-           repr(sorted((base_prior_sd or {}).items())))
-    ref = noise_reference(prob, folds, cands, key, n_noise, alpha, seed, noise_cache)
+           repr(sorted((base_prior_sd or {}).items())), repr(sorted(em.level_error.items())))
+    ref = noise_reference(prob, folds, cands, key, n_noise, alpha, seed, noise_cache, su.level)
     thr, q_chi2, noise_best = ref.threshold, ref.base_chi2_q, ref.mean_best_improvement
     x0, ho0, rank = _rank_candidates(su, lin, thr)
     nobs = prob.n_obs
@@ -270,14 +274,19 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     beats = best is not None and rank["heldout_improvement"].iloc[0] > thr
     at_edge = bool(best is not None and rank["at_range_bound"].iloc[0])
     rivals = rivals_of_another_kind(rank, thr) if beats else []
+    # a claim needs an established gap: the base's held-out chi2 above its pure-noise quantile (omnibus), or the
+    # best candidate's improvement over the base and its structural level above its own (directed, gap.noise);
+    # together they call pure noise a gap in at most 1 %
+    directed_d = (directed_improvement(with_level(prob, su.level), folds, cands)
+                  if su.level.shape[1] and cands and math.isfinite(ref.directed_q) else float("nan"))
+    directed = bool(directed_d > ref.directed_q)
+    established = ho0 > ref.omnibus_q or directed
     # a significant gap whose best fit is adequate: a close rival of another kind stands only if the data
-    # cannot reject it (gap.rivals; below the noise quantile the gap itself is not established, no test)
+    # cannot reject it (gap.rivals; on a gap that is not established, no test)
     rival_p = {}
-    if rival_test and rivals and resid_ok and not at_edge and ho0 > q_chi2:
+    if rival_test and rivals and resid_ok and not at_edge and established:
         rival_p = rival_p_values(prob, folds, best, rivals, seed=seed)
         rivals = [c for c in rivals if rival_p[c] >= RIVAL_ALPHA]
-    # a claim needs an established gap: the base's held-out chi2 above the pure-noise 99 % quantile
-    established = ho0 > q_chi2
     claimed = best if beats and resid_ok and not at_edge and not rivals and established else None
     if claimed:
         category = "sensor fault" if is_sensor(claimed) else "explained"
@@ -312,11 +321,12 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
                         category=category, regions=regions,
                         extra={"indistinguishable": ([best] + rivals) if category == "indistinguishable" else [],
                                "rival_p": rival_p, "heldout_chi2_base": ho0, "expected_noise_chi2": exp_noise,
-                               "remainder_chi2_q": q_rem,
+                               "remainder_chi2_q": q_rem, "directed_q": ref.directed_q, "directed_improvement": directed_d,
+                               "established_by": ("omnibus" if ho0 > ref.omnibus_q else "directed" if directed else ""),
                                "error_model": em.name,
                                "noise_mean_best_improvement": noise_best, "outputs": su.outputs,
                                # for a later search over pairs of candidates (gap.pairs)
-                               "problem": prob, "folds": folds, "linearisation": lin})
+                               "problem": prob, "folds": folds, "linearisation": lin, "level": su.level})
 
 @dataclass
 class _Setup:
@@ -339,6 +349,7 @@ class _Setup:
     a_sig: np.ndarray = None     # (nobs, p) their columns, step units (not whitened)
     u: np.ndarray = None         # (n, o') burn direction of the burn-scatter covariance, or None
     tau: float = 0.0             # burn scatter [deg]
+    level: np.ndarray = None     # (rows of prob, q) whitened structural level per channel (gap.noise)
 
 def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em: ErrorModel, k_folds: int,
            seed: int, source: str, base_prior_sd: dict | None = None) -> _Setup:
@@ -384,6 +395,7 @@ def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em
         tau = float(em.burn_scatter_deg)
         r = whiten_observations(r, pidx, oidx, u, em.burn_scatter_deg)
         a_full = whiten_observations(a_full, pidx, oidx, u, em.burn_scatter_deg)
+    level = level_columns(outputs, y, sig, pidx, oidx, em.level_error, u, tau)
     # the base prior: one pseudo-observation per base parameter, (prior mean 0 - reference) / prior sd, in
     # the same step units; point index -1 (always fitted, never held out or counted in a gap)
     prior = [(j, base_prior_sd[p], -lin.theta[p]) for j, (g, p) in enumerate(lin.columns)
@@ -400,6 +412,7 @@ def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em
             rp[i] = mean / sd
         r = np.concatenate([r, rp])
         a_full = np.vstack([a_full, rows])
+        level = np.vstack([level, np.zeros((len(prior), level.shape[1]))])
         pidx = np.concatenate([pidx, np.full(len(prior), -1)])
         oidx = np.concatenate([oidx, np.full(len(prior), -1)])
     prob = FitProblem(r=r, a=a_full, point=pidx, output=oidx, base_cols=lin.column_index("base"),
@@ -407,7 +420,7 @@ def _setup(lin: Linearisation, measured: pd.DataFrame, candidates, unc: dict, em
     folds = make_folds(n, point_valid, k_folds, seed, operating_point_groups(lin.points))
     return _Setup(outputs=outputs, oi=oi, y=y, yref=yref, sig=sig, valid=valid, point_valid=point_valid,
                   excluded=excluded, pidx=pidx, oidx=oidx, cands=cands, prob=prob, folds=folds, r_sig=r_sig,
-                  a_sig=a_sig, u=u, tau=tau)
+                  a_sig=a_sig, u=u, tau=tau, level=level)
 
 def _rank_candidates(su: _Setup, lin: Linearisation, thr: float) -> tuple[np.ndarray, float, pd.DataFrame]:
     """Base-only fit and every candidate fitted with the base: held-out chi2, AIC/BIC, signature match.

@@ -76,7 +76,8 @@ def verdict_statement(category: str, claimed: str | None, best: str | None, rank
     row = rank.iloc[0] if len(rank) else None
     if category == "no significant gap":
         parts.append(f"No significant gap: the held-out residual of the base calibration ({gap_before:.2f} sigma "
-                     "rms) is consistent with the measurement noise and the base's structural error. No "
+                     "rms) is consistent with the measurement noise and the base's structural error, and no "
+                     "candidate improves on the base and its structural level by more than noise would. No "
                      "candidate is claimed.")
         if row is not None and row["heldout_improvement"] > thr:
             close = rank[rank["heldout_chi2"] - row["heldout_chi2"] < thr]["effect"]
