@@ -16,9 +16,10 @@ Steps of :func:`diagnose`:
    with a share booked only when significant; a smooth residual field and the shape of the error;
 4. which candidate: each fitted together with the base on training folds (all sparks of an operating
    point in one fold) and scored on the held-out fold; the verdict is one of :data:`CATEGORIES`: a claim
-   ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the 99 %
-   quantile pure noise leaves, or the best candidate's improvement over the base and its structural level
-   per channel above the 99 % quantile of that statistic on pure noise: the directed test), a held-out
+   ("explained" / "sensor fault") needs an established gap (the base's held-out chi2 above the quantile pure
+   noise leaves, or the best candidate's improvement over the base and its structural level per channel
+   above the quantile of that statistic on pure noise: the directed test; 99.5 % each, so that together
+   they call pure noise a gap in at most 1 %), a held-out
    improvement above the (1 - alpha) quantile of the best improvement pure noise produces on the same
    design, a held-out remainder within what pure noise leaves
    with the same candidate fitted (99 % quantile, :mod:`engine_model.gap.noise`), no parameter at its range
@@ -237,9 +238,10 @@ def diagnose(lin: Linearisation, measured: pd.DataFrame, candidates: Sequence[st
     Notes
     -----
     The claim rule needs the gap established and the remainder within noise: nothing is claimed while the
-    base's held-out chi2 lies within the pure-noise 99 % quantile and the directed test (``extra["directed_q"]``,
-    :mod:`engine_model.gap.noise`) fails too ("no significant gap", even when a candidate's improvement beats
-    its own noise threshold), and a candidate that removes most but not all of
+    base's held-out chi2 lies within its pure-noise quantile and the directed test (``extra["directed_q"]``,
+    :mod:`engine_model.gap.noise`) fails too (99.5 % each; 99 % for the omnibus test alone under an error
+    model without a structural level) ("no significant gap", even when a candidate's improvement beats its
+    own noise threshold), and a candidate that removes most but not all of
     an established gap is reported as "partly explained", never claimed.
     """
     unc = dict(UNCERTAINTY)
