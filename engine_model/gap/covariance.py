@@ -36,7 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["BURN_SCATTER_DEG", "MODEL_ERROR", "MODEL_ERROR_REMAINDER", "MODEL_ERROR_LEVEL", "level_columns", "ErrorModel", "ERROR_MODELS",
+__all__ = ["BURN_SCATTER_DEG", "MODEL_ERROR", "MODEL_ERROR_REMAINDER", "MODEL_ERROR_LEVEL",
+           "HELDOUT_ERROR_FACTOR", "level_columns", "ErrorModel", "ERROR_MODELS",
            "DEFAULT_ERROR_MODEL", "get_error_model", "burn_whitener", "whiten_blocks", "whiten_observations",
            "null_base_residuals"]
 
@@ -87,6 +88,15 @@ MODEL_ERROR_LEVEL = {
 #: 0.34 deg rms per point on the benchmark's noiseless null case (above; 0.33 on the earlier plan),
 #: rounded up.
 BURN_SCATTER_DEG = 0.35
+
+#: Factor on the structural error of the default error model (the remainder and the burn scatter above) in the
+#: diagnosis.  The constants above were measured in-sample on the noiseless null; the claim rule judges held-out
+#: chi2, which sees more of the same misfit.  Measured on the gap benchmark's null case with noise (default
+#: 32-point plan of 2026-11-29, noise seeds 6000-6059, used for nothing else): the null's mean held-out chi2 over
+#: its pure-noise expectation is 1.138 at factor 1.0, 1.068 at 1.1, 1.036 at 1.15, 1.007 at 1.2, 0.955 at 1.3;
+#: the factor is the one that makes the two equal.  The discrimination plan (:mod:`engine_model.gap.design`)
+#: keeps the in-sample scatter.
+HELDOUT_ERROR_FACTOR = 1.2
 
 
 def burn_whitener(u: np.ndarray, tau: float) -> np.ndarray:
@@ -203,7 +213,8 @@ class ErrorModel:
 
 #: Error models of the diagnosis (:func:`engine_model.gap.diagnose.diagnose`, ``error_model=``).
 ERROR_MODELS = {m.name: m for m in (
-    ErrorModel("burn_scatter", MODEL_ERROR_REMAINDER, BURN_SCATTER_DEG,
+    ErrorModel("burn_scatter", {k: (kind, v * HELDOUT_ERROR_FACTOR) for k, (kind, v) in MODEL_ERROR_REMAINDER.items()},
+               BURN_SCATTER_DEG * HELDOUT_ERROR_FACTOR,
                "per-point burn scatter as a correlated reading error (GLS), a diagonal remainder and a level "
                "per channel", MODEL_ERROR_LEVEL),
     ErrorModel("diagonal", MODEL_ERROR, 0.0, "structural error in quadrature per reading"),

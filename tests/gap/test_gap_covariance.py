@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from engine_model.gap.covariance import (BURN_SCATTER_DEG, ERROR_MODELS, MODEL_ERROR, ErrorModel, burn_whitener,
-                                        get_error_model, whiten_blocks, whiten_observations)
+from engine_model.gap.covariance import (BURN_SCATTER_DEG, ERROR_MODELS, HELDOUT_ERROR_FACTOR, MODEL_ERROR, ErrorModel,
+                                        burn_whitener, get_error_model, whiten_blocks, whiten_observations)
 from engine_model.gap.diagnose import diagnose
 from engine_model.gap.residuals import UNCERTAINTY
 
@@ -108,7 +108,8 @@ def test_planted_effect_is_named_through_burn_scatter():
 
 def test_error_models_and_their_errors():
     assert set(ERROR_MODELS) == {"diagonal", "burn_scatter"}
-    assert get_error_model("burn_scatter").burn_scatter_deg == BURN_SCATTER_DEG
+    # the diagnosis carries the in-sample scatter times the factor measured on the held-out statistic
+    assert get_error_model("burn_scatter").burn_scatter_deg == pytest.approx(BURN_SCATTER_DEG * HELDOUT_ERROR_FACTOR)
     assert get_error_model("diagonal").model_error is MODEL_ERROR
     with pytest.raises(ValueError, match=r"error model 'gls' unknown; valid: \['burn_scatter', 'diagonal'\]"):
         get_error_model("gls")
