@@ -107,10 +107,17 @@ def test_worker_killed_mid_sweep(prefect_api, tmp_path, external_cluster):
     _check_dataset(out, plan)
     counts = store.attempt_counts(out / "sweep")
     assert set(counts) == set(range(40))
-    # chunks stored before the kill ran exactly once; only what the dead worker held re-ran: the chunk it
-    # was running and the one the scheduler had queued on it (worker-saturation 1.1 gives a 1-thread worker
-    # ceil(1.1) = 2 slots; measured: 1 or 2 re-runs depending on where in a chunk the kill lands)
+    # chunks stored before the kill ran exactly once; only what the dead worker held re-ran, each once more: the
+    # chunk it was running, the one the scheduler had queued on it (worker-saturation 1.1: ceil(1.1) = 2 slots
+    # on a 1-thread worker) and any chunk it had finished whose result the driver had not yet fetched from its
+    # memory.  How many of the last there are depends on the driver's latency (1-2 re-runs on an idle machine,
+    # 3 on a fresh clone with the other test worker busy), so the claim is on which chunks re-ran, not how many:
+    # the attempt records carry the pid of the process that ran them (flows/store.py: record_attempt).
     assert all(counts[c] == 1 for c in done_at_kill)
-    assert sum(counts.values()) <= 40 + 2
+    assert max(counts.values()) <= 2, counts
+    by_killed = {int(p.name[6:11]) for p in (out / "sweep" / "_attempts").iterdir()
+                 if p.name.split(".")[-2] == str(workers[0].pid)}
+    rerun = {c for c, n in counts.items() if n > 1}
+    assert rerun <= by_killed - done_at_kill, (sorted(rerun), sorted(by_killed), sorted(done_at_kill))
     man = json.loads((out / "manifest.json").read_text())
     assert man["status"] == "complete" and man["counts"]["points"] == 40
