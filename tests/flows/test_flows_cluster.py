@@ -107,12 +107,12 @@ def test_worker_killed_mid_sweep(prefect_api, tmp_path, external_cluster):
     _check_dataset(out, plan)
     counts = store.attempt_counts(out / "sweep")
     assert set(counts) == set(range(40))
-    # chunks stored before the kill ran exactly once; only what the dead worker held re-ran, each once more: the
-    # chunk it was running, the one the scheduler had queued on it (worker-saturation 1.1: ceil(1.1) = 2 slots
-    # on a 1-thread worker) and any chunk it had finished whose result the driver had not yet fetched from its
-    # memory.  How many of the last there are depends on the driver's latency (1-2 re-runs on an idle machine,
-    # 3 on a fresh clone with the other test worker busy), so the claim is on which chunks re-ran, not how many:
-    # the attempt records carry the pid of the process that ran them (flows/store.py: record_attempt).
+    # chunks stored before the kill ran exactly once; only chunks the dead worker had started re-ran, each once
+    # more: the one it was running and any it had finished whose result the driver had not yet fetched from its
+    # memory (a chunk only queued on it had not started and runs once, on the other worker).  How many finished
+    # ones there are depends on the driver's latency (1-2 re-runs in all on an idle machine, 3 on a fresh clone
+    # with the other test worker busy), so the claim is on which chunks re-ran, not how many: the attempt
+    # records carry the pid of the process that ran them (flows/store.py: record_attempt).
     assert all(counts[c] == 1 for c in done_at_kill)
     assert max(counts.values()) <= 2, counts
     by_killed = {int(p.name[6:11]) for p in (out / "sweep" / "_attempts").iterdir()
