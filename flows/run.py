@@ -258,6 +258,25 @@ def index_summary(man: dict) -> list[tuple[str, str]]:
     return summary
 
 
+def _trend_text(trends: dict | None) -> str:
+    """One sentence on the table's physical trends (``engine_model.knock.table_trends``) for the index."""
+    if not trends:
+        return ""
+    def cells(rows):
+        return ", ".join(f"{r['speed_rpm']:.0f} rpm {r['throttle_pct']:g} %"
+                         + (f" ({r['charge_vs_wot']:.2f} of WOT's charge)" if r.get("charge_vs_wot") is not None
+                            else "") for r in rows) or "none"
+    small = trends.get("small_throttle_knock", [])
+    by_speed: dict[float, list[float]] = {}
+    for r in trends.get("zone1", []):
+        by_speed.setdefault(r["speed_rpm"], []).append(r["throttle_pct"])
+    zone = "; ".join(f"{n:.0f} rpm at {min(t):g}-{max(t):g} % ({len(t)} cells)" for n, t in sorted(by_speed.items()))
+    return (f"Trends: part-load cells more than 2 deg behind WOT: {len(trends.get('part_load_drops', []))}; "
+            f"knock-limited cells at light load (< half of WOT's charge, >= 2000 rpm, <= 20 % throttle): "
+            f"{cells(trends.get('light_load_knock', []))}; knock-limited at <= 20 % throttle all told: "
+            f"{cells(small)}; knock even at full retard (zone 1): {zone or 'none'}.")
+
+
 def _write_index(work: Path, man: dict) -> Path:
     summary = index_summary(man)
     cal_figs = sorted(p.relative_to(work) for p in (work / "calibration" / "figures").glob("*.png"))
@@ -283,8 +302,8 @@ def _write_index(work: Path, man: dict) -> Path:
             "of the fastest cycles at the bench's spark (calibrated model), and the spark table there. "
             f"Model MBT within 2 deg of the bench: {bc['mbt_within_2deg']}; knock index < 1 at the points that "
             f"ran clean: {bc['knock_free_points_below_1']}; table within 3 deg of the bench: "
-            f"{bc['table_within_3deg']}."), ["maps/bench_consistency.png", "maps/bench_consistency.csv",
-                                             "calibration/knock_evidence.parquet"]))
+            f"{bc['table_within_3deg']}. {_trend_text(bc.get('trends'))}"),
+            ["maps/bench_consistency.png", "maps/bench_consistency.csv", "calibration/knock_evidence.parquet"]))
     if "gap" in man:
         gfiles = sorted(p.relative_to(work) for p in (work / "gap").glob("*") if p.is_file())
         sections.append(("Sim-to-real gap", man["gap"]["statement"], gfiles))

@@ -12,7 +12,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from engine_model.io import write_figure
 
-__all__ = ["bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
+__all__ = ["LIGHT_LOAD_CHARGE", "bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
 
 
 def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier) -> pd.DataFrame:
@@ -90,20 +90,41 @@ def plot_consistency(tab: pd.DataFrame, path: Path) -> Path:
     return Path(path)
 
 
+#: Light load, for the trend checks: a cell whose fresh-air charge is below this fraction of the WOT cell's at the
+#: same speed [-].  [A] a definition (half of full load), not a fitted value: at <= 20 % throttle the single
+#: butterfly ahead of the restrictor already passes 55-85 % of the WOT charge at 2000-3000 rpm (default R6 run), so
+#: the throttle position alone does not say whether a cell is at light load.
+LIGHT_LOAD_CHARGE = 0.5
+
+
+def _charge_vs_wot(c: pd.DataFrame) -> pd.Series:
+    """Each cell's fresh-air charge (``vol_eff``) over the WOT (100 %) cell's at its speed; NaN where either is
+    missing."""
+    if "vol_eff" not in c.columns:
+        return pd.Series(np.nan, index=c.index)
+    ve = pd.to_numeric(c["vol_eff"], errors="coerce")
+    wot = ve.where(c["throttle_pct"] == 100.0).groupby(c["speed_rpm"]).transform("max")
+    return ve / wot
+
+
 def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
     """Physical-trend checks of a spark table (the cells of a :class:`engine_model.tables.MapResult`).
 
-    * ``light_load_knock``: knock-limited or knock-infeasible cells at <= 20 % throttle and >= 2000 rpm, each
-      with its plenum pressure (a butterfly at 20 % passes full load at low speed on a restricted engine);
+    * ``small_throttle_knock``: knock-limited or knock-infeasible cells at <= 20 % throttle and >= 2000 rpm, each
+      with its plenum pressure and its charge relative to WOT at that speed (a butterfly at 20 % passes most of
+      full load at low speed on a restricted engine);
+    * ``light_load_knock``: those of them at light load, charge below ``LIGHT_LOAD_CHARGE`` of WOT's, or not
+      known (no ``vol_eff``, or no 100 % cell at that speed) (expected: none; knock belongs to high load);
     * ``part_load_drops``: per speed >= ``min_speed_rpm``, cells outside knock-limited and bench cells whose
       spark lies more than 2 deg below the WOT cell's model spark (when the bench pinned the WOT cell: its model
       MBT plus the bench offset the table carried at that speed, ``bench_mbt_offset_deg``, i.e. the bench's spark
       when the offset is carried, the model's MBT when it is not);
-    * ``zone1``: where knock survives full retard (expected at high throttle and low speed).
+    * ``zone1``: where knock survives full retard (expected at high throttle and low speed), with the charge.
     """
     c = cells
     kl = c["limited_by"].astype(str).eq("knock") | c["infeasible_reason"].astype(str).eq("knock-limited")
-    light = c[kl & (c["throttle_pct"] <= 20) & (c["speed_rpm"] >= 2000)]
+    charge = _charge_vs_wot(c)
+    small = c[kl & (c["throttle_pct"] <= 20) & (c["speed_rpm"] >= 2000)]
     drops = []
     for n, g in c[c["speed_rpm"] >= min_speed_rpm].groupby("speed_rpm"):
         g = g.set_index("throttle_pct").sort_index()
@@ -119,8 +140,16 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
                               "wot_reference": ref})
     z1 = c[c["infeasible_reason"].astype(str).eq("knock-limited")]
     pp = "plenum_pressure_bar" if "plenum_pressure_bar" in c.columns else None
-    return {"light_load_knock": [{"speed_rpm": float(r.speed_rpm), "throttle_pct": float(r.throttle_pct),
-                                  "plenum_pressure_bar": round(float(r[pp]), 3) if pp else None}
-                                 for _, r in light.iterrows()],
+
+    def cell(i, r):
+        q = float(charge.at[i])
+        return {"speed_rpm": float(r.speed_rpm), "throttle_pct": float(r.throttle_pct),
+                "plenum_pressure_bar": round(float(r[pp]), 3) if pp else None,
+                "charge_vs_wot": round(q, 3) if math.isfinite(q) else None}
+
+    small_rows = [cell(i, r) for i, r in small.iterrows()]
+    return {"small_throttle_knock": small_rows,
+            "light_load_knock": [d for d in small_rows
+                                 if d["charge_vs_wot"] is None or d["charge_vs_wot"] < LIGHT_LOAD_CHARGE],
             "part_load_drops": drops,
-            "zone1": [{"speed_rpm": float(r.speed_rpm), "throttle_pct": float(r.throttle_pct)} for _, r in z1.iterrows()]}
+            "zone1": [cell(i, r) for i, r in z1.iterrows()]}

@@ -130,3 +130,19 @@ def test_trend_reference_at_a_pinned_wot_cell_carries_the_bench_offset():
     assert knock.table_trends(carried)["part_load_drops"] == []
     low = cells.assign(spark_deg_btdc=[47.0, 49.5], bench_mbt_offset_deg=[-3.8, -3.8])    # 2.5 deg below 49.5
     assert [d["throttle_pct"] for d in knock.table_trends(low)["part_load_drops"]] == [60.0]
+
+
+def test_light_load_knock_is_read_on_the_charge_not_the_throttle():
+    """A knock-limited cell at 10 % throttle is light-load knock when it holds under half of WOT's charge at its
+    speed, not when the butterfly already passes most of it; without a WOT cell to compare, it counts as light."""
+    cells = pd.DataFrame({"speed_rpm": [2000.0, 2000.0, 3000.0, 3000.0, 4000.0],
+                          "throttle_pct": [10.0, 100.0, 10.0, 100.0, 20.0],
+                          "vol_eff": [0.30, 0.75, 0.60, 0.74, 0.70], "plenum_pressure_bar": [0.6, 1.0, 0.9, 1.0, 0.95],
+                          "spark_deg_btdc": [10.0, 5.0, 12.0, 15.0, 20.0],
+                          "spark_mbt_deg_btdc": [14.0, 9.0, 16.0, 15.0, 24.0],
+                          "limited_by": ["knock", "knock", "knock", "mbt", "knock"], "infeasible_reason": ""})
+    t = knock.table_trends(cells)
+    assert [(d["speed_rpm"], d["throttle_pct"]) for d in t["small_throttle_knock"]] == \
+        [(2000.0, 10.0), (3000.0, 10.0), (4000.0, 20.0)]
+    assert t["small_throttle_knock"][0]["charge_vs_wot"] == pytest.approx(0.4)
+    assert [(d["speed_rpm"], d["charge_vs_wot"]) for d in t["light_load_knock"]] == [(2000.0, 0.4), (4000.0, None)]

@@ -49,4 +49,5 @@ def test_the_table_honours_table2_and_reports_against_it(quick_run):
     assert bc["trends"]["part_load_drops"] == [], bc["trends"]["part_load_drops"]
     html = (quick_run.out / "index.html").read_text()
     assert "Against the real bench" in html and "bench_consistency.png" in html
+    assert "Trends: part-load cells more than 2 deg behind WOT: 0;" in html
     assert np.isfinite(tab["map_mbt_deg_btdc"]).all()
