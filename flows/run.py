@@ -274,7 +274,23 @@ def _trend_text(trends: dict | None) -> str:
     return (f"Trends: part-load cells more than 2 deg behind WOT: {len(trends.get('part_load_drops', []))}; "
             f"knock-limited cells at light load (< half of WOT's charge, >= 2000 rpm, <= 20 % throttle): "
             f"{cells(trends.get('light_load_knock', []))}; knock-limited at <= 20 % throttle all told: "
-            f"{cells(small)}; knock even at full retard (zone 1): {zone or 'none'}.")
+            f"{cells(small)}; knock even at full retard (zone 1): {zone or 'none'}.{_evidence_text(trends)}")
+
+
+def _evidence_text(trends: dict) -> str:
+    """Where the table's knock border rests on bench evidence and where it is the model's extrapolation."""
+    ev = trends.get("knock_evidence")
+    if not ev:
+        return ""
+    (n0, n1), (t0, t1) = ev["speed_rpm"], ev["throttle_pct"]
+    span = f"{n0:.0f}-{n1:.0f} rpm" if n1 > n0 else f"{n0:.0f} rpm"
+    thr = f"{t0:g}-{t1:g} %" if t1 > t0 else f"{t0:g} %"
+    outside = ev["outside_speeds_rpm"]
+    where = (f" (at {', '.join(f'{n:.0f}' for n in outside)} rpm)" if outside else "")
+    return (f" The knock evidence is {ev['points']} bench points at {span}, {thr} throttle; "
+            f"{ev['knock_cells_outside_speeds']} of the {ev['knock_cells']} cells limited by knock lie outside "
+            f"that speed span{where}, where the border is the calibrated model's extrapolation "
+            f"(mbc plan knock-sweeps plans the onset sweeps that would measure it).")
 
 
 def _write_index(work: Path, man: dict) -> Path:

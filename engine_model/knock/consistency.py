@@ -107,7 +107,7 @@ def _charge_vs_wot(c: pd.DataFrame) -> pd.Series:
     return ve / wot
 
 
-def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
+def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.DataFrame | None = None) -> dict:
     """Physical-trend checks of a spark table (the cells of a :class:`engine_model.tables.MapResult`).
 
     * ``small_throttle_knock``: knock-limited or knock-infeasible cells at <= 20 % throttle and >= 2000 rpm, each
@@ -119,7 +119,10 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
       spark lies more than 2 deg below the WOT cell's model spark (when the bench pinned the WOT cell: its model
       MBT plus the bench offset the table carried at that speed, ``bench_mbt_offset_deg``, i.e. the bench's spark
       when the offset is carried, the model's MBT when it is not);
-    * ``zone1``: where knock survives full retard (expected at high throttle and low speed), with the charge.
+    * ``zone1``: where knock survives full retard (expected at high throttle and low speed), with the charge;
+    * with ``bench`` (bench points, ``speed_rpm, throttle_pct``): ``knock_evidence``, the speed and throttle span
+      of the bench's points and the knock-limited or knock-infeasible cells outside its speed span (there the
+      border is the calibrated model's extrapolation).
     """
     c = cells
     kl = c["limited_by"].astype(str).eq("knock") | c["infeasible_reason"].astype(str).eq("knock-limited")
@@ -148,7 +151,15 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0) -> dict:
                 "charge_vs_wot": round(q, 3) if math.isfinite(q) else None}
 
     small_rows = [cell(i, r) for i, r in small.iterrows()]
-    return {"small_throttle_knock": small_rows,
+    extra = {}
+    if bench is not None and len(bench):
+        bs, bt = bench["speed_rpm"].to_numpy(float), bench["throttle_pct"].to_numpy(float)
+        out = c[kl & ((c["speed_rpm"] < bs.min() - 1.0) | (c["speed_rpm"] > bs.max() + 1.0))]
+        extra["knock_evidence"] = {"points": int(len(bench)), "speed_rpm": [float(bs.min()), float(bs.max())],
+                                   "throttle_pct": [float(bt.min()), float(bt.max())],
+                                   "knock_cells": int(kl.sum()), "knock_cells_outside_speeds": int(len(out)),
+                                   "outside_speeds_rpm": sorted({float(n) for n in out["speed_rpm"]})}
+    return {**extra, "small_throttle_knock": small_rows,
             "light_load_knock": [d for d in small_rows
                                  if d["charge_vs_wot"] is None or d["charge_vs_wot"] < LIGHT_LOAD_CHARGE],
             "part_load_drops": drops,

@@ -122,7 +122,7 @@ def _bench_consistency(ctx: StageContext, res, eng, paths: dict, knock_evidence=
     tab = knock.bench_consistency(evidence, res.cells, mult)
     paths["bench_consistency"] = write_csv(tab, ctx.work / "maps" / "bench_consistency.csv")
     paths["bench_consistency_png"] = knock.plot_consistency(tab, ctx.work / "maps" / "bench_consistency.png")
-    return {**knock.consistency_summary(tab), "trends": knock.table_trends(res.cells),
+    return {**knock.consistency_summary(tab), "trends": knock.table_trends(res.cells, bench=evidence),
             "rows": tab.round(3).to_dict(orient="records")}
 
 

@@ -146,3 +146,8 @@ def test_light_load_knock_is_read_on_the_charge_not_the_throttle():
         [(2000.0, 10.0), (3000.0, 10.0), (4000.0, 20.0)]
     assert t["small_throttle_knock"][0]["charge_vs_wot"] == pytest.approx(0.4)
     assert [(d["speed_rpm"], d["charge_vs_wot"]) for d in t["light_load_knock"]] == [(2000.0, 0.4), (4000.0, None)]
+    assert "knock_evidence" not in t
+    bench = pd.DataFrame({"speed_rpm": [2500.0, 3000.0], "throttle_pct": [100.0, 60.0]})
+    ev = knock.table_trends(cells, bench=bench)["knock_evidence"]
+    assert ev == {"points": 2, "speed_rpm": [2500.0, 3000.0], "throttle_pct": [60.0, 100.0], "knock_cells": 4,
+                  "knock_cells_outside_speeds": 3, "outside_speeds_rpm": [2000.0, 4000.0]}
