@@ -23,7 +23,7 @@ import os
 from pathlib import Path
 
 from flows import prefect_env  # noqa: F401
-from flows.lifeline import Stop, stop_name
+from flows.lifeline import Stop, note_stop, stop_name
 from flows.run import run_flow
 from flows.sweep import sweep_flow
 
@@ -109,8 +109,6 @@ def build_deployments(watch: str, results: str, cron: str | None = None, interva
 def serve_deployments(watch: str = "bench_inbox", cron: str | None = None, interval_s: float | None = None,
                       workers: int = 2, dask_address: str | None = None, results: str = "results") -> None:
     """Register and serve the deployments until interrupted (needs a Prefect API: ``PREFECT_API_URL``)."""
-    from prefect import serve
-
     if cron is None and interval_s is not None and interval_s <= 0:
         raise ValueError(f"--interval = {interval_s} must be > 0 seconds")
     if workers < 1:
@@ -127,10 +125,53 @@ def serve_deployments(watch: str = "bench_inbox", cron: str | None = None, inter
     # stopped after the runner, so SIGTERM or Ctrl-C (KeyboardInterrupt, flows/lifeline.py) ends `serve`
     # and then the server, instead of leaving the runner polling a server that is gone.
     with prefect_env.prefect_api(verbose=False):
-        try:
-            serve(*deployments)
-        except SystemExit as exc:   # Prefect's runner answers SIGTERM with sys.exit(0) once it has started
-            raise Stop("SIGTERM") from exc
-        # serve() returns only when stopped: it catches KeyboardInterrupt (Ctrl-C, or SIGTERM before the
-        # runner took it over) itself.  Say so, so that `mbc serve` ends like every stopped command.
+        _serve(deployments)
+        # returns only when stopped (Ctrl-C, or SIGTERM): say so, so that `mbc serve` ends like every stopped
+        # command
         raise Stop(stop_name())
+
+
+def _serve(deployments) -> None:
+    """Serve ``deployments`` on a Prefect runner until a stop signal; SIGTERM stops it from inside its loop.
+
+    Prefect's own ``serve`` runs a ``Runner`` whose SIGTERM handler calls ``sys.exit(0)``: the ``SystemExit``
+    lands at whatever bytecode the main thread is running, and when that is inside a task of the runner's task
+    groups (an API request in flight) the group prints an exception-group traceback on the way out (seen once
+    in `.ci/run` on a loaded machine: tests/flows/test_stops.py).  Here SIGTERM is recorded as a stop
+    (:func:`flows.lifeline.note_stop`; a second one exits at once) and the task that runs the runner is
+    cancelled from within the event loop, so the runner leaves through its own clean-up.  Ctrl-C (SIGINT) is
+    handled the same way, through the event loop's own signal handling.
+    """
+    import asyncio
+    import signal
+
+    from prefect.runner import Runner
+
+    class _Runner(Runner):
+        main_task: asyncio.Task | None = None
+
+        def handle_sigterm(self, *args, **kwargs) -> None:   # Prefect's: self.stop(); sys.exit(0)
+            note_stop(signal.SIGTERM)
+            task = self.main_task
+            if task is not None:
+                task.get_loop().call_soon_threadsafe(task.cancel)
+
+    runner = _Runner(pause_on_shutdown=True)
+    for d in deployments:
+        runner.add_deployment(d)
+    print("mbc serve: serving " + ", ".join(f"{d.flow_name}/{d.name}" for d in deployments)
+          + " (Ctrl-C or SIGTERM stops)", flush=True)
+
+    async def main():
+        task = runner.main_task = asyncio.current_task()
+
+        def on_sigint():    # run by the loop itself, not at an arbitrary bytecode
+            note_stop(signal.SIGINT)
+            task.cancel()
+        asyncio.get_running_loop().add_signal_handler(signal.SIGINT, on_sigint)
+        await runner.start()
+
+    try:
+        asyncio.run(main())
+    except (asyncio.CancelledError, KeyboardInterrupt):
+        pass

@@ -84,11 +84,7 @@ def stop_signals():
         yield
         return
     def handler(signum, frame):
-        if _SIGNALLED:
-            os.write(2, b"\nmbc: stopped at once (second signal)\n")
-            os._exit(130)
-        _SIGNALLED.append(signum)
-        hush_workers()
+        note_stop(signum)
         if _DEFERRED:   # inside a library's locks (deferred_stops): checkpoint() raises it
             return
         raise Stop(signal.Signals(signum).name)
@@ -128,6 +124,17 @@ def deferred_stops():
         yield
     finally:
         _DEFERRED.pop()
+
+
+def note_stop(signum: int) -> None:
+    """Record a stop signal (the first counts; :func:`stop_name`, :func:`checkpoint`) and hush the workers; a
+    second one exits at once (status 130).  For :func:`stop_signals`' handler and for a library's own handler
+    that takes a signal over and must stop without raising (``mbc serve``'s Prefect runner, flows/deploy.py)."""
+    if _SIGNALLED:
+        os.write(2, b"\nmbc: stopped at once (second signal)\n")
+        os._exit(130)
+    _SIGNALLED.append(signum)
+    hush_workers()
 
 
 def stop_name() -> str:

@@ -194,7 +194,11 @@ def test_every_server_of_a_run_listens_on_loopback_only(tmp_path):
         proc.communicate(timeout=60)
 
 
-def test_serve_exits_on_sigterm_with_its_server(tmp_path):
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["sigterm", "ctrl_c"])
+def test_serve_exits_on_sigterm_with_its_server(tmp_path, sig):
+    """Prefect's runner answers SIGTERM with sys.exit(0) from its signal handler, which once landed inside a task
+    with an API request in flight and printed an exception-group traceback (`.ci/run` on a loaded machine);
+    `mbc serve` now cancels the runner from inside its event loop, for SIGTERM and Ctrl-C alike."""
     cmd = [sys.executable, "-m", "flows.cli", "serve", "--watch", str(tmp_path / "inbox"), "--results",
            str(tmp_path / "results"), "--interval", "3600", "--workers", "1"]
     proc = subprocess.Popen(cmd, start_new_session=True, env=_env(tmp_path), stdout=subprocess.PIPE,
@@ -210,9 +214,10 @@ def test_serve_exits_on_sigterm_with_its_server(tmp_path):
         proc.communicate()
         raise
     t0 = time.monotonic()
-    os.kill(proc.pid, signal.SIGTERM)
-    err = _wait_for_exit(proc, "mbc serve ignored SIGTERM")
+    os.kill(proc.pid, sig)
+    err = _wait_for_exit(proc, f"mbc serve ignored {sig.name}")
     assert time.monotonic() - t0 < 15
     assert proc.returncode == 130, (proc.returncode, err[-3000:])
     assert "Traceback" not in err, err[-3000:]
+    assert f"mbc: interrupted ({sig.name})" in err, err[-3000:]
     _assert_helpers_gone({"server": server, "workers": []})
