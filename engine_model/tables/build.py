@@ -221,7 +221,7 @@ def _knock_uncertainty(runner: SparkRunner, ev: pd.DataFrame, cells: pd.DataFram
     """
     lo = st.spark_min_deg_btdc
     unc = uncertainty_retard(runner, ev, cells, st)
-    for col in ("phasing_std_deg", "knock_phasing_gain"):
+    for col in ("phasing_std_deg", "knock_phasing_gain", "knock_phasing_gain_cell"):
         cells[col] = unc[col].to_numpy(float)
     cells["knock_phasing_gain_measured"] = unc["knock_phasing_gain_measured"].to_numpy(bool)
     feas = cells["feasible"].to_numpy()

@@ -362,15 +362,18 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
     ``sigma`` = 1-sigma of the model's CA50 offset; ``g`` = (d ln K / d earlier CA50) / (d ln K / d spark), the
     first a central difference from two extra simulations with the burn made ``_PHASING_FD_DEG`` faster and slower
     (BDUR10-90 scaled, m kept), the second a line through the search's own points within ``_SLOPE_WINDOW_DEG`` of
-    the border; retard = z * sigma * |g| [deg]: the burn error
+    the border; g is then the median of the measured gains around the cell (:func:`neighbour_median_gain`);
+    retard = z * sigma * |g| [deg]: the burn error
     has either sign, and which side knocks more depends on the cell (a faster burn advances CA50 but, with the
     knock integral ending at the end-gas burn fraction, also consumes the end gas sooner).  One batched evaluate call
     (stage ``u1``), only for the cells that need it.  Returns columns ``phasing_std_deg, knock_phasing_gain,
-    knock_phasing_gain_measured, knock_uncertainty_border_retard_deg`` indexed like ``cells`` (0 / NaN / False
-    where not applicable; gain not measured: the fallback ``_PHASING_GAIN_FALLBACK``).
+    knock_phasing_gain_measured, knock_phasing_gain_cell, knock_uncertainty_border_retard_deg`` indexed like
+    ``cells`` (0 / NaN / False where not applicable; gain not measured: the fallback ``_PHASING_GAIN_FALLBACK``;
+    ``knock_phasing_gain_cell`` is the cell's own value before the median).
     """
     out = pd.DataFrame({"phasing_std_deg": np.nan, "knock_phasing_gain": np.nan, "knock_phasing_gain_measured": False,
-                        "knock_uncertainty_border_retard_deg": 0.0}, index=cells.index)
+                        "knock_phasing_gain_cell": np.nan, "knock_uncertainty_border_retard_deg": 0.0},
+                       index=cells.index)
     z = float(st.knock_uncertainty_z)
     border = cells["spark_border_deg_btdc"].to_numpy(float)
     need = cells["feasible"].to_numpy(bool) & np.isfinite(border) & (border < st.spark_max_deg_btdc - 1e-6)
@@ -418,5 +421,37 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
             gain = float(np.clip(abs(math.log(k_fast[j] / k_slow[j])) / (2.0 * delta[j]) / slope, 0.0, 3.0))
             out.at[c, "knock_phasing_gain_measured"] = True
         out.at[c, "knock_phasing_gain"] = gain
-        out.at[c, "knock_uncertainty_border_retard_deg"] = z * float(out.at[c, "phasing_std_deg"]) * gain
+    out["knock_phasing_gain_cell"] = out["knock_phasing_gain"]
+    if {"i", "j"} <= set(cells.columns):
+        out["knock_phasing_gain"] = neighbour_median_gain(
+            cells["i"].to_numpy(int), cells["j"].to_numpy(int), out["knock_phasing_gain_cell"].to_numpy(float),
+            out["knock_phasing_gain_measured"].to_numpy(bool))
+    out.loc[idx, "knock_uncertainty_border_retard_deg"] = (
+        z * out.loc[idx, "phasing_std_deg"].to_numpy(float) * np.nan_to_num(out.loc[idx, "knock_phasing_gain"]))
+    return out
+
+
+#: Fewest measured gains in a cell's 3 x 3 neighbourhood (itself included) for their median to replace the cell's
+#: own value: with three, one outlier is rejected; with two the median is their mean and rejects nothing.
+_GAIN_MEDIAN_MIN = 3
+
+
+def neighbour_median_gain(i: np.ndarray, j: np.ndarray, gain: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Each measured gain replaced by the median of the measured gains in its 3 x 3 grid neighbourhood.
+
+    ``i, j`` are the cells' throttle-row and speed-column indices.  The gain is a property of the engine's knock
+    chemistry and phasing and varies smoothly over the map; a single cell's finite difference also carries the
+    global burn model's local bends in spark (at 5000 rpm, 60 % throttle of the default run the burn's m rises
+    from 4.8 to 5.4 between 29 and 38 deg spark, which halves the knock index's spark slope there and gave a gain
+    of 1.33 between neighbours of 0.56-0.68, and with it a spark 10 deg below both neighbours).  Cells with fewer
+    than ``_GAIN_MEDIAN_MIN`` measured gains around them, and cells whose own gain was not measured (the
+    fallback), keep their own value.
+    """
+    gain = np.asarray(gain, float)
+    out = gain.copy()
+    ok = np.asarray(measured, bool) & np.isfinite(gain)
+    for c in np.flatnonzero(ok):
+        near = ok & (np.abs(i - i[c]) <= 1) & (np.abs(j - j[c]) <= 1)
+        if near.sum() >= _GAIN_MEDIAN_MIN:
+            out[c] = float(np.median(gain[near]))
     return out

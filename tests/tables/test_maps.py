@@ -26,7 +26,7 @@ from engine_model import priors
 from engine_model.sim import simulate
 from engine_model.tables import (TABLES, EcuGrid, LambdaTable, MapSettings, PriorModel, build_maps, injection_time_ms,
                                  load_model, long_form, parse_breakpoints, second_differences, smooth_table, write_maps)
-from engine_model.tables.search import decide_cell
+from engine_model.tables.search import decide_cell, neighbour_median_gain
 
 from conftest import SIM_WORKERS
 
@@ -745,6 +745,43 @@ def test_knock_uncertainty_retard_is_z_sigma_gain_in_knock_cells_only():
         assert u1["point_id"].str.endswith("-fast").sum() == u1["point_id"].str.endswith("-slow").sum()
         assert res.stats["knock_uncertainty"]["cells_retarded"] == 2
     assert retards[1] > 2.5 * retards[0]
+
+
+def test_one_cells_outlying_knock_gain_is_replaced_by_its_neighbours_median():
+    """A 3 x 3 block of knock-limited cells (85-100 % throttle, 6000-10000 rpm) where the centre's knock index is
+    three times as sensitive to the burn's phasing as elsewhere: its own measured gain is three times its
+    neighbours', the gain used for its retard is theirs, and the rest of the block keeps the common gain."""
+    def outlier_engine(plan):
+        out = offset_engine(plan)
+        centre = ((plan["throttle_pct"] == 90) & (plan["speed_rpm"] == 8000)).to_numpy()
+        n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
+        b0, m0 = priors.combustion_estimate(n, t)
+        shift = _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
+                                                                          plan["wiebe_m"].to_numpy(float))
+        out.loc[centre, "knock_index"] *= np.exp(2 * KNOCK_PER_DEG_CA50 * shift[centre])
+        return out
+    st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0, knock_uncertainty_z=1.0)
+    res = build_maps(default_spec(), StdModel(offset_std=2.0), grid=EcuGrid((85, 90, 100), (6000, 8000, 10000)),
+                     evaluate=outlier_engine, settings=st)
+    c = res.cells.set_index(["throttle_pct", "speed_rpm"])
+    gain = KNOCK_PER_DEG_CA50 / 0.08
+    assert (c["limited_by"] == "knock").all() and c["knock_phasing_gain_measured"].all()
+    assert c.loc[(90, 8000), "knock_phasing_gain_cell"] == pytest.approx(3 * gain, rel=0.03)
+    others = c.drop(index=(90, 8000))
+    np.testing.assert_allclose(others["knock_phasing_gain_cell"], gain, rtol=0.03)
+    np.testing.assert_allclose(c["knock_phasing_gain"], gain, rtol=0.03)
+    np.testing.assert_allclose(c["knock_uncertainty_retard_deg"], 2.0 * gain, rtol=0.03)
+
+
+def test_neighbour_median_gain_needs_three_measured_values():
+    i, j = np.divmod(np.arange(6), 3)                  # 2 x 3 grid
+    gain = np.array([0.6, 2.0, 0.7, np.nan, 1.0, 0.5])
+    measured = np.array([True, True, True, False, True, False])
+    out = neighbour_median_gain(i, j, gain, measured)
+    np.testing.assert_allclose(out, [np.median([0.6, 2.0, 1.0]), np.median([0.6, 2.0, 0.7, 1.0]),
+                                     np.median([2.0, 0.7, 1.0]), np.nan, np.median([0.6, 2.0, 0.7, 1.0]), 0.5])
+    alone = neighbour_median_gain(i, j, gain, np.array([True, True, False, False, False, False]))
+    np.testing.assert_allclose(alone[:2], [0.6, 2.0])   # two values: each keeps its own
 
 
 def test_knock_uncertainty_zero_std_or_no_std_gives_no_retard():
