@@ -441,11 +441,10 @@ def neighbour_median_gain(i: np.ndarray, j: np.ndarray, gain: np.ndarray, measur
 
     ``i, j`` are the cells' throttle-row and speed-column indices.  The gain is a property of the engine's knock
     chemistry and phasing and varies smoothly over the map; a single cell's finite difference also carries the
-    global burn model's local bends in spark (at 5000 rpm, 60 % throttle of the default run the burn's m rises
-    from 4.8 to 5.4 between 29 and 38 deg spark, which halves the knock index's spark slope there and gave a gain
-    of 1.33 between neighbours of 0.56-0.68, and with it a spark 10 deg below both neighbours).  Cells with fewer
-    than ``_GAIN_MEDIAN_MIN`` measured gains around them, and cells whose own gain was not measured (the
-    fallback), keep their own value.
+    global burn model's local bends in spark (a burn that slows as the spark advances flattens the knock index's
+    spark slope, the gain's denominator, in that cell alone; docs/sections/tables.md).  Cells with fewer than
+    ``_GAIN_MEDIAN_MIN`` measured gains around them, and cells whose own gain was not measured (the fallback),
+    keep their own value.
     """
     gain = np.asarray(gain, float)
     out = gain.copy()
