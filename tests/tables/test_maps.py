@@ -689,12 +689,16 @@ def offset_engine(plan):
     """synthetic_engine whose knock index also rises as the burn's CA50 offset falls below the prior's
     (a faster burn): ln K gains 0.05 per deg of earlier CA50; at the prior's burn it is synthetic_engine."""
     out = synthetic_engine(plan)
+    out["knock_index"] = out["knock_index"] * np.exp(KNOCK_PER_DEG_CA50 * _ca50_shift(plan))
+    return out
+
+
+def _ca50_shift(plan):
+    """How much earlier the plan's burn puts CA50 after ignition than the prior's burn [deg]."""
     n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
     b0, m0 = priors.combustion_estimate(n, t)
-    shift = _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
-                                                                      plan["wiebe_m"].to_numpy(float))
-    out["knock_index"] = out["knock_index"] * np.exp(KNOCK_PER_DEG_CA50 * shift)
-    return out
+    return _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
+                                                                    plan["wiebe_m"].to_numpy(float))
 
 
 class StdModel(PriorModel):
@@ -754,11 +758,7 @@ def test_one_cells_outlying_knock_gain_is_replaced_by_its_neighbours_median():
     def outlier_engine(plan):
         out = offset_engine(plan)
         centre = ((plan["throttle_pct"] == 90) & (plan["speed_rpm"] == 8000)).to_numpy()
-        n, t = plan["speed_rpm"].to_numpy(float), plan["throttle_pct"].to_numpy(float)
-        b0, m0 = priors.combustion_estimate(n, t)
-        shift = _offset(np.atleast_1d(b0), np.atleast_1d(m0)) - _offset(plan["bdur_10_90_deg"].to_numpy(float),
-                                                                          plan["wiebe_m"].to_numpy(float))
-        out.loc[centre, "knock_index"] *= np.exp(2 * KNOCK_PER_DEG_CA50 * shift[centre])
+        out.loc[centre, "knock_index"] *= np.exp(2 * KNOCK_PER_DEG_CA50 * _ca50_shift(plan)[centre])
         return out
     st = MapSettings(spark_min_deg_btdc=20.0, max_second_diff_deg=100.0, knock_uncertainty_z=1.0)
     res = build_maps(default_spec(), StdModel(offset_std=2.0), grid=EcuGrid((85, 90, 100), (6000, 8000, 10000)),
