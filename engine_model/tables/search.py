@@ -362,7 +362,8 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
     ``sigma`` = 1-sigma of the model's CA50 offset; ``g`` = (d ln K / d earlier CA50) / (d ln K / d spark), the
     first a central difference from two extra simulations with the burn made ``_PHASING_FD_DEG`` faster and slower
     (BDUR10-90 scaled, m kept), the second a line through the search's own points within ``_SLOPE_WINDOW_DEG`` of
-    the border; g is then the median of the measured gains around the cell (:func:`neighbour_median_gain`);
+    the border; a g that is an outlier among the measured gains around the cell is replaced by their median
+    (:func:`neighbour_median_gain`);
     retard = z * sigma * |g| [deg]: the burn error
     has either sign, and which side knocks more depends on the cell (a faster burn advances CA50 but, with the
     knock integral ending at the end-gas burn fraction, also consumes the end gas sooner).  One batched evaluate call
@@ -431,20 +432,28 @@ def uncertainty_retard(runner: "SparkRunner", ev: pd.DataFrame, cells: pd.DataFr
     return out
 
 
-#: Fewest measured gains in a cell's 3 x 3 neighbourhood (itself included) for their median to replace the cell's
-#: own value: with three, one outlier is rejected; with two the median is their mean and rejects nothing.
+#: Fewest measured gains in a cell's 3 x 3 neighbourhood (itself included) for the outlier test: with three, one
+#: outlier can be told from the other two; with two the median is their mean and rejects nothing.
 _GAIN_MEDIAN_MIN = 3
+#: Hampel identifier: a gain is an outlier when it lies more than this many scaled median absolute deviations
+#: (1.4826 MAD, the normal distribution's sigma) from its neighbourhood's median.  3 is the identifier's usual
+#: threshold (F. R. Hampel, J. Am. Stat. Assoc. 69 (1974) 383-393; R. K. Pearson, IEEE Trans. Control Syst.
+#: Technol. 10 (2002) 55-63, the window filter with t = 3).
+_GAIN_OUTLIER_MADS = 3.0
+_MAD_TO_SIGMA = 1.4826
 
 
 def neighbour_median_gain(i: np.ndarray, j: np.ndarray, gain: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """Each measured gain replaced by the median of the measured gains in its 3 x 3 grid neighbourhood.
+    """Each measured gain that is an outlier in its 3 x 3 grid neighbourhood replaced by the neighbourhood's median.
 
     ``i, j`` are the cells' throttle-row and speed-column indices.  The gain is a property of the engine's knock
     chemistry and phasing and varies smoothly over the map; a single cell's finite difference also carries the
     global burn model's local bends in spark (a burn that slows as the spark advances flattens the knock index's
-    spark slope, the gain's denominator, in that cell alone; docs/sections/tables.md).  Cells with fewer than
-    ``_GAIN_MEDIAN_MIN`` measured gains around them, and cells whose own gain was not measured (the fallback),
-    keep their own value.
+    spark slope, the gain's denominator, in that cell alone; docs/sections/tables.md).  A gain is an outlier when
+    it lies more than ``_GAIN_OUTLIER_MADS`` scaled median absolute deviations from the median of the measured gains
+    around it (itself included; the Hampel identifier); a gain within the neighbourhood's own spread is the cell's
+    information and is kept.  Cells with fewer than ``_GAIN_MEDIAN_MIN`` measured gains around them, and cells whose
+    own gain was not measured (the fallback), keep their own value.
     """
     gain = np.asarray(gain, float)
     out = gain.copy()
@@ -452,5 +461,8 @@ def neighbour_median_gain(i: np.ndarray, j: np.ndarray, gain: np.ndarray, measur
     for c in np.flatnonzero(ok):
         near = ok & (np.abs(i - i[c]) <= 1) & (np.abs(j - j[c]) <= 1)
         if near.sum() >= _GAIN_MEDIAN_MIN:
-            out[c] = float(np.median(gain[near]))
+            med = float(np.median(gain[near]))
+            spread = _MAD_TO_SIGMA * float(np.median(np.abs(gain[near] - med)))
+            if abs(gain[c] - med) > _GAIN_OUTLIER_MADS * spread:
+                out[c] = med
     return out
