@@ -223,8 +223,9 @@ class MapResult:
         spark evaluated; spark_max if no knock met), ``spark_raw_deg_btdc``,
         ``spark_deg_btdc`` (table), ``smoothing_shift_deg``,
         ``phasing_std_deg`` (model's 1-sigma CA50-offset error at the knock border),
-        ``knock_phasing_gain`` [deg spark / deg CA50] (median of the measured gains around
-        the cell; ``knock_phasing_gain_cell`` the cell's own, ``knock_phasing_gain_measured``
+        ``knock_phasing_gain`` [deg spark / deg CA50] (the cell's own, or the median of the
+        measured gains around it where the own is an outlier among them;
+        ``knock_phasing_gain_cell`` the cell's own, ``knock_phasing_gain_measured``
         False where the fallback 1 was used), ``knock_uncertainty_retard_deg``
         (retard of the raw spark for that uncertainty, ``MapSettings.knock_uncertainty_z``),
         ``spark_start_deg_btdc`` (retarded starting map), ``limited_by``
