@@ -787,8 +787,8 @@ def test_neighbour_median_gain_needs_three_measured_values():
 
 def test_a_gain_within_its_neighbours_spread_is_kept_and_an_outlier_is_not():
     """The Hampel identifier: the centre of a 3 x 3 block whose gains spread over 0.5-0.7 (scaled MAD 0.074) keeps
-    0.75 (2 scaled MADs off the median) and loses 1.33 (10 off; the default run's 5000 rpm / 60 % cell against its
-    neighbours, docs/sections/tables.md); with the plain median both would be replaced."""
+    0.75 (2 scaled MADs off the median) and loses 1.33 (10 off here; the default run's gain at 5000 rpm / 60 %,
+    4 off its own neighbourhood, docs/sections/tables.md); with the plain median both would be replaced."""
     i, j = np.divmod(np.arange(9), 3)
     ring = [0.5, 0.55, 0.6, 0.65, 0.7, 0.55, 0.65, 0.6]
     measured = np.ones(9, bool)
