@@ -779,7 +779,7 @@ def test_neighbour_median_gain_needs_three_measured_values():
     measured = np.array([True, True, True, False, True, False])
     out = neighbour_median_gain(i, j, gain, measured)
     # 2.0 lies 3.9 scaled MADs from the median of its neighbourhood (0.6, 0.7, 1.0, 2.0) and is replaced by it;
-    # 0.6, 0.7 and 1.0 lie within 0.7 of theirs and keep their own; unmeasured cells are left alone
+    # 0.6, 0.7 and 1.0 lie within 0.7 scaled MADs of theirs and keep their own; unmeasured cells are left alone
     np.testing.assert_allclose(out, [0.6, np.median([0.6, 2.0, 0.7, 1.0]), 0.7, np.nan, 1.0, 0.5])
     alone = neighbour_median_gain(i, j, gain, np.array([True, True, False, False, False, False]))
     np.testing.assert_allclose(alone[:2], [0.6, 2.0])   # two values: each keeps its own
