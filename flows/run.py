@@ -266,15 +266,23 @@ def _trend_text(trends: dict | None) -> str:
         return ", ".join(f"{r['speed_rpm']:.0f} rpm {r['throttle_pct']:g} %"
                          + (f" ({r['charge_vs_wot']:.2f} of WOT's charge)" if r.get("charge_vs_wot") is not None
                             else "") for r in rows) or "none"
+    def spans(rows):
+        by_speed: dict[float, list[float]] = {}
+        for r in rows:
+            by_speed.setdefault(r["speed_rpm"], []).append(r["throttle_pct"])
+        return "; ".join(f"{n:.0f} rpm at {min(t):g} % (1 cell)" if len(t) == 1 else
+                         f"{n:.0f} rpm at {min(t):g}-{max(t):g} % ({len(t)} cells)"
+                         for n, t in sorted(by_speed.items())) or "none"
     small = trends.get("small_throttle_knock", [])
-    by_speed: dict[float, list[float]] = {}
-    for r in trends.get("zone1", []):
-        by_speed.setdefault(r["speed_rpm"], []).append(r["throttle_pct"])
-    zone = "; ".join(f"{n:.0f} rpm at {min(t):g}-{max(t):g} % ({len(t)} cells)" for n, t in sorted(by_speed.items()))
+    lean = trends.get("full_charge_lean_knock", [])
+    lean_text = (f" Knock-limited at >= 90 % of WOT's charge on a leaner target lambda than WOT's: {spans(lean)}"
+                 f" (full load without WOT's enrichment; a richer target there raises the knock border)." if lean
+                 else "")
     return (f"Trends: part-load cells more than 2 deg behind WOT: {len(trends.get('part_load_drops', []))}; "
             f"knock-limited cells at light load (< half of WOT's charge, >= 2000 rpm, <= 20 % throttle): "
             f"{cells(trends.get('light_load_knock', []))}; knock-limited at <= 20 % throttle all told: "
-            f"{cells(small)}; knock even at full retard (zone 1): {zone or 'none'}.{_evidence_text(trends)}")
+            f"{cells(small)}; knock even at full retard (zone 1): {spans(trends.get('zone1', []))}."
+            f"{lean_text}{_evidence_text(trends)}")
 
 
 def _evidence_text(trends: dict) -> str:

@@ -12,7 +12,7 @@ from scipy.interpolate import RegularGridInterpolator
 
 from engine_model.io import write_figure
 
-__all__ = ["LIGHT_LOAD_CHARGE", "bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
+__all__ = ["FULL_CHARGE", "LIGHT_LOAD_CHARGE", "bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
 
 
 def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier) -> pd.DataFrame:
@@ -95,6 +95,9 @@ def plot_consistency(tab: pd.DataFrame, path: Path) -> Path:
 #: butterfly ahead of the restrictor already passes 55-85 % of the WOT charge at 2000-3000 rpm (default R6 run), so
 #: the throttle position alone does not say whether a cell is at light load.
 LIGHT_LOAD_CHARGE = 0.5
+#: Near full load, for the trend checks: a charge of at least this fraction of the WOT cell's at the same speed
+#: [-].  [A] a definition, not a fitted value: at 2000-4000 rpm 30-60 % throttle holds 0.90-0.99 of it (default run).
+FULL_CHARGE = 0.9
 
 
 def _charge_vs_wot(c: pd.DataFrame) -> pd.Series:
@@ -120,6 +123,9 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
       MBT plus the bench offset the table carried at that speed, ``bench_mbt_offset_deg``, i.e. the bench's spark
       when the offset is carried, the model's MBT when it is not);
     * ``zone1``: where knock survives full retard (expected at high throttle and low speed), with the charge;
+    * ``full_charge_lean_knock``: knock-limited or knock-infeasible cells below 100 % throttle that hold at least
+      ``FULL_CHARGE`` of WOT's charge at their speed but run a leaner target lambda than the WOT cell there (with
+      ``lambda`` in ``cells``): full load without the WOT cell's enrichment, a knock limit the lambda table sets;
     * with ``bench`` (bench points, ``speed_rpm, throttle_pct``): ``knock_evidence``, the speed and throttle span
       of the bench's points and the knock-limited or knock-infeasible cells outside its speed span (there the
       border is the calibrated model's extrapolation).
@@ -151,6 +157,12 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
                 "charge_vs_wot": round(q, 3) if math.isfinite(q) else None}
 
     small_rows = [cell(i, r) for i, r in small.iterrows()]
+    lean = []
+    if "lambda" in c.columns:
+        lam = pd.to_numeric(c["lambda"], errors="coerce")
+        lam_wot = lam.where(c["throttle_pct"] == 100.0).groupby(c["speed_rpm"]).transform("min")
+        full = c[kl & (c["throttle_pct"] < 100.0) & (charge >= FULL_CHARGE) & (lam > lam_wot + 1e-3)]
+        lean = [{**cell(i, r), "lambda": float(lam[i]), "wot_lambda": float(lam_wot[i])} for i, r in full.iterrows()]
     extra = {}
     if bench is not None and len(bench):
         bs, bt = bench["speed_rpm"].to_numpy(float), bench["throttle_pct"].to_numpy(float)
@@ -163,4 +175,5 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
             "light_load_knock": [d for d in small_rows
                                  if d["charge_vs_wot"] is None or d["charge_vs_wot"] < LIGHT_LOAD_CHARGE],
             "part_load_drops": drops,
-            "zone1": [cell(i, r) for i, r in z1.iterrows()]}
+            "zone1": [cell(i, r) for i, r in z1.iterrows()],
+            "full_charge_lean_knock": lean}

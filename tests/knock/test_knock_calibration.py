@@ -151,3 +151,23 @@ def test_light_load_knock_is_read_on_the_charge_not_the_throttle():
     ev = knock.table_trends(cells, bench=bench)["knock_evidence"]
     assert ev == {"points": 2, "speed_rpm": [2500.0, 3000.0], "throttle_pct": [60.0, 100.0], "knock_cells": 4,
                   "knock_cells_outside_speeds": 3, "outside_speeds_rpm": [2000.0, 4000.0]}
+
+
+def test_knock_at_full_charge_on_a_leaner_lambda_than_wot_is_flagged():
+    """3000 rpm: the 50 % cell holds 0.95 of WOT's charge and is knock-limited at lambda 1.0 where WOT runs 0.9:
+    flagged.  Not flagged: the same cell at WOT's lambda, at 0.8 of the charge, or limited by MBT; nor the WOT
+    cell itself; nor anything when the cells carry no lambda."""
+    def cells(lam50=1.0, ve50=0.76, limit50="knock"):
+        return pd.DataFrame({"speed_rpm": 3000.0, "throttle_pct": [20.0, 50.0, 100.0],
+                             "vol_eff": [0.40, ve50, 0.80], "plenum_pressure_bar": [0.5, 0.99, 1.0],
+                             "spark_deg_btdc": [20.0, 9.0, 15.0], "spark_mbt_deg_btdc": [20.0, 18.0, 15.0],
+                             "limited_by": ["mbt", limit50, "knock"], "infeasible_reason": "",
+                             "lambda": [1.0, lam50, 0.9]})
+    flagged = knock.table_trends(cells())["full_charge_lean_knock"]
+    assert [(d["speed_rpm"], d["throttle_pct"]) for d in flagged] == [(3000.0, 50.0)]
+    assert flagged[0]["lambda"] == 1.0 and flagged[0]["wot_lambda"] == 0.9
+    assert flagged[0]["charge_vs_wot"] == pytest.approx(0.95)
+    assert knock.table_trends(cells(lam50=0.9))["full_charge_lean_knock"] == []
+    assert knock.table_trends(cells(ve50=0.64))["full_charge_lean_knock"] == []     # 0.8 of WOT's charge
+    assert knock.table_trends(cells(limit50="mbt"))["full_charge_lean_knock"] == []
+    assert knock.table_trends(cells().drop(columns="lambda"))["full_charge_lean_knock"] == []
