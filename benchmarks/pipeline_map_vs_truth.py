@@ -5,13 +5,17 @@ with the truth law (:class:`engine_model.bench.burnlaw.BurnLaw`) as the combusti
 and solver step (0.5 deg): the truth's own table.  Then, for each run, the truth engine is simulated at the run's
 table spark in every cell both call feasible, and compared with the truth's table cell: torque ratio, knock
 index, spark difference (all cells; and the cells the truth table calls MBT-limited).
+``--lambda-table CSV``: the truth's table at that target lambda (as ``mbc maps --lambda-table``) instead of the
+default one; judge runs whose maps were built with the same table.
 
     PYTHONPATH=. .venv/bin/python benchmarks/pipeline_map_vs_truth.py RUN_A RUN_B ...
+    PYTHONPATH=. .venv/bin/python benchmarks/pipeline_map_vs_truth.py --lambda-table lambda.csv RUN_C
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -23,7 +27,7 @@ from engine_model import SolverSettings, default_spec
 
 from engine_model.sim import simulate
 from engine_model.bench.burnlaw import BurnLaw
-from engine_model.tables import EcuGrid, build_maps
+from engine_model.tables import EcuGrid, LambdaTable, build_maps
 
 SOLVER = SolverSettings(step_deg=0.5)
 
@@ -32,18 +36,23 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/pipeline_map_vs_truth"))
+    ap.add_argument("--lambda-table", type=Path, default=None, help="target-lambda wide CSV (default: the default table)")
     a = ap.parse_args()
     man = json.loads((a.runs[0] / "manifest.json").read_text())
     params = {k: float(v) for k, v in man["calibration"]["airflow"]["parameters"].items()}
     spec = default_spec().with_values(params)
     law = BurnLaw()
     a.cache.mkdir(parents=True, exist_ok=True)
-    tc = a.cache / f"truth_cells_{spec.spec_hash()}.parquet"
+    lam_table, lam_tag = None, ""
+    if a.lambda_table is not None:
+        lam_table = LambdaTable.from_csv(a.lambda_table)
+        lam_tag = "_lam" + hashlib.sha256(a.lambda_table.read_bytes()).hexdigest()[:12]
+    tc = a.cache / f"truth_cells_{spec.spec_hash()}{lam_tag}.parquet"
     if tc.is_file():
         truth = pd.read_parquet(tc)
     else:
         t0 = time.perf_counter()
-        res = build_maps(spec, law, grid=EcuGrid(), evaluate=lambda p: simulate(spec, p, SOLVER))
+        res = build_maps(spec, law, grid=EcuGrid(), lambda_table=lam_table, evaluate=lambda p: simulate(spec, p, SOLVER))
         truth = res.cells
         truth.to_parquet(tc)
         print(f"truth table: {res.stats['simulated_points']} simulations, {time.perf_counter() - t0:.0f} s")
