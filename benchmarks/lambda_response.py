@@ -24,7 +24,7 @@ import pandas as pd
 
 from engine_model import SolverSettings, default_spec
 from engine_model.sim import simulate
-from engine_model.tables import LambdaTable
+from engine_model.tables import EcuGrid, LambdaTable
 
 SOLVER = SolverSettings(step_deg=0.5)
 LAMBDAS = (0.8, 0.85, 0.9, 0.95, 1.0, 1.05)
@@ -57,9 +57,10 @@ def charge_table(run: Path) -> pd.DataFrame:
     cells = pd.read_parquet(run / "maps" / "cells.parquet")
     wot = cells[cells["throttle_pct"] == cells["throttle_pct"].max()].set_index("speed_rpm")["trapped_mass_mg"]
     frac = cells["trapped_mass_mg"].to_numpy() / cells["speed_rpm"].map(wot).to_numpy()
-    LambdaTable.from_csv(run / "maps" / "lambda_target.csv")          # validates the run's table
-    default = pd.read_csv(run / "maps" / "lambda_target.csv", index_col=0)
-    base = np.array([default.loc[t, str(int(n))] for t, n in zip(cells["throttle_pct"], cells["speed_rpm"])])
+    th, sp = np.unique(cells["throttle_pct"].to_numpy(float)), np.unique(cells["speed_rpm"].to_numpy(float))
+    default = LambdaTable.from_csv(run / "maps" / "lambda_target.csv").on_grid(EcuGrid(th, sp))
+    base = default[np.searchsorted(th, cells["throttle_pct"].to_numpy(float)),
+                   np.searchsorted(sp, cells["speed_rpm"].to_numpy(float))]
     lam = np.minimum(np.interp(frac, *CHARGE_RAMP), base)
     wide = (cells.assign(lam=np.round(lam, 3))
             .pivot(index="throttle_pct", columns="speed_rpm", values="lam"))

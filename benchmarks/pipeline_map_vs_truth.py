@@ -36,7 +36,8 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("runs", type=Path, nargs="+")
     ap.add_argument("--cache", type=Path, default=Path("/tmp/pipeline_map_vs_truth"))
-    ap.add_argument("--lambda-table", type=Path, default=None, help="target-lambda wide CSV (default: the default table)")
+    ap.add_argument("--lambda-table", type=Path, default=None,
+                    help="target-lambda wide CSV (default: the default table)")
     a = ap.parse_args()
     man = json.loads((a.runs[0] / "manifest.json").read_text())
     params = {k: float(v) for k, v in man["calibration"]["airflow"]["parameters"].items()}
@@ -52,7 +53,8 @@ def main():
         truth = pd.read_parquet(tc)
     else:
         t0 = time.perf_counter()
-        res = build_maps(spec, law, grid=EcuGrid(), lambda_table=lam_table, evaluate=lambda p: simulate(spec, p, SOLVER))
+        res = build_maps(spec, law, grid=EcuGrid(), lambda_table=lam_table,
+                         evaluate=lambda p: simulate(spec, p, SOLVER))
         truth = res.cells
         truth.to_parquet(tc)
         print(f"truth table: {res.stats['simulated_points']} simulations, {time.perf_counter() - t0:.0f} s")

@@ -16,6 +16,7 @@ from engine_model.knock.plots import plot_evidence
 from engine_model.knock.speed_term import (KnockSpeedCalibration, calibrate_knock_speed, multiplier_at,
                                            with_speed_multiplier)
 
-__all__ = ["FULL_CHARGE", "LIGHT_LOAD_CHARGE", "KnockCalibration", "KnockSpeedCalibration", "bench_consistency", "bench_sweep_plan",
-           "calibrate_knock", "calibrate_knock_speed", "consistency_summary", "knock_sweep_plan", "multiplier_at",
-           "plot_consistency", "plot_evidence", "point_evidence", "table_trends", "with_speed_multiplier"]
+__all__ = ["FULL_CHARGE", "LIGHT_LOAD_CHARGE", "KnockCalibration", "KnockSpeedCalibration", "bench_consistency",
+           "bench_sweep_plan", "calibrate_knock", "calibrate_knock_speed", "consistency_summary", "knock_sweep_plan",
+           "multiplier_at", "plot_consistency", "plot_evidence", "point_evidence", "table_trends",
+           "with_speed_multiplier"]

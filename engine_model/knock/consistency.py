@@ -12,7 +12,8 @@ from scipy.interpolate import RegularGridInterpolator
 
 from engine_model.io import write_figure
 
-__all__ = ["FULL_CHARGE", "LIGHT_LOAD_CHARGE", "bench_consistency", "consistency_summary", "plot_consistency", "table_trends"]
+__all__ = ["FULL_CHARGE", "LIGHT_LOAD_CHARGE", "bench_consistency", "consistency_summary", "plot_consistency",
+           "table_trends"]
 
 
 def bench_consistency(evidence: pd.DataFrame, cells: pd.DataFrame, multiplier) -> pd.DataFrame:
