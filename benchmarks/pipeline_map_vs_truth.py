@@ -27,7 +27,7 @@ from engine_model import SolverSettings, default_spec
 
 from engine_model.sim import simulate
 from engine_model.bench.burnlaw import BurnLaw
-from engine_model.tables import EcuGrid, LambdaTable, build_maps
+from engine_model.tables import EcuGrid, LambdaTable, MapSettings, build_maps
 
 SOLVER = SolverSettings(step_deg=0.5)
 
@@ -53,8 +53,9 @@ def main():
         truth = pd.read_parquet(tc)
     else:
         t0 = time.perf_counter()
+        # the truth's own MBT in every cell (no load-trend fit: the truth's estimates carry no error)
         res = build_maps(spec, law, grid=EcuGrid(), lambda_table=lam_table,
-                         evaluate=lambda p: simulate(spec, p, SOLVER))
+                         settings=MapSettings(mbt_monotone_in_load=False), evaluate=lambda p: simulate(spec, p, SOLVER))
         truth = res.cells
         truth.to_parquet(tc)
         print(f"truth table: {res.stats['simulated_points']} simulations, {time.perf_counter() - t0:.0f} s")

@@ -278,7 +278,11 @@ def _trend_text(trends: dict | None) -> str:
     lean_text = (f" Knock-limited at >= 90 % of WOT's charge on a leaner target lambda than WOT's: {spans(lean)}"
                  f" (full load without WOT's enrichment; a richer target there raises the knock border)." if lean
                  else "")
-    return (f"Trends: part-load cells more than 2 deg behind WOT: {len(trends.get('part_load_drops', []))}; "
+    moves = trends.get("load_trend_moves", [])
+    moved = (f" (the load-trend fit moved {len(moves)} MBT targets by more than 2 deg, up to "
+             f"{max(abs(m['shift_deg']) for m in moves):.1f} deg, where the model's own MBT estimates ran against "
+             f"the trend)" if moves else "")
+    return (f"Trends: part-load cells more than 2 deg behind WOT: {len(trends.get('part_load_drops', []))}{moved}; "
             f"knock-limited cells at light load (< half of WOT's charge, >= 2000 rpm, <= 20 % throttle): "
             f"{cells(trends.get('light_load_knock', []))}; knock-limited at <= 20 % throttle all told: "
             f"{cells(small)}; knock even at full retard (zone 1): {spans(trends.get('zone1', []))}."

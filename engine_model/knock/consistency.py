@@ -123,6 +123,9 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
       spark lies more than 2 deg below the WOT cell's model spark (when the bench pinned the WOT cell: its model
       MBT plus the bench offset the table carried at that speed, ``bench_mbt_offset_deg``, i.e. the bench's spark
       when the offset is carried, the model's MBT when it is not);
+    * ``load_trend_moves``: cells whose MBT target the table's load-trend fit moved by more than 2 deg
+      (``load_trend_shift_deg``; where the model's own MBT estimates broke the order "no less advance as the
+      throttle closes" by that much), each with its shift;
     * ``zone1``: where knock survives full retard (expected at high throttle and low speed), with the charge;
     * ``full_charge_lean_knock``: knock-limited or knock-infeasible cells below 100 % throttle that hold at least
       ``FULL_CHARGE`` of WOT's charge at their speed but run a leaner target lambda than the WOT cell there (with
@@ -148,6 +151,11 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
                     r["spark_deg_btdc"] < ref - 2.0:
                 drops.append({"speed_rpm": float(n), "throttle_pct": float(t), "spark": float(r["spark_deg_btdc"]),
                               "wot_reference": ref})
+    moves = []
+    if "load_trend_shift_deg" in c.columns:
+        sh = pd.to_numeric(c["load_trend_shift_deg"], errors="coerce").fillna(0.0)
+        moves = [{"speed_rpm": float(c.at[i, "speed_rpm"]), "throttle_pct": float(c.at[i, "throttle_pct"]),
+                  "shift_deg": round(float(sh[i]), 2)} for i in c.index[sh.abs() > 2.0]]
     z1 = c[c["infeasible_reason"].astype(str).eq("knock-limited")]
     pp = "plenum_pressure_bar" if "plenum_pressure_bar" in c.columns else None
 
@@ -176,5 +184,6 @@ def table_trends(cells: pd.DataFrame, min_speed_rpm: float = 3000.0, bench: pd.D
             "light_load_knock": [d for d in small_rows
                                  if d["charge_vs_wot"] is None or d["charge_vs_wot"] < LIGHT_LOAD_CHARGE],
             "part_load_drops": drops,
+            "load_trend_moves": moves,
             "zone1": [cell(i, r) for i, r in z1.iterrows()],
             "full_charge_lean_knock": lean}

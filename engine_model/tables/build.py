@@ -5,6 +5,7 @@
          (coarse sweep around the model's CA50 = 9 deg ATDC spark, then parabolic refinement of brake
           torque; knock border refined log-linearly), one batched ``evaluate`` call per search stage
       -> MBT, limited by knock (knock_index < 1 - knock_margin) and a safety retard
+      -> MBT targets made non-decreasing as the throttle closes at each speed (the part-load trend [H])
       -> infeasible zones of the paper's Figure 1 flagged (``doe.feasibility``)
       -> smoothing with bounded second differences (only as much as needed; shifts reported)
       -> verification run of the final table (knock re-checked, trapped air) -> injection time
@@ -47,7 +48,7 @@ from engine_model.tables.grid import EcuGrid, LambdaTable
 from engine_model.tables.injection import injection_time_ms
 from engine_model.tables.search import EVAL_COLUMNS, SparkRunner, decide_cell, model_spark, uncertainty_retard
 from engine_model.tables.settings import MapResult, MapSettings, check_model
-from engine_model.tables.smoothing import second_differences, smooth_table
+from engine_model.tables.smoothing import isotonic_nonincreasing, second_differences, smooth_table
 
 __all__ = ["build_maps"]
 
@@ -121,6 +122,7 @@ def build_maps(spec: EngineSpec, model, grid: EcuGrid | None = None, lambda_tabl
     border_safe = _knock_uncertainty(runner, ev, cells, st)
     border_safe = _honour_bench(cells, bench, border_safe)
     _carry_bench_offset(cells, border_safe, st)
+    _load_trend(cells, border_safe, st)
     sinfo = _smooth_spark(cells, grid, st, border_safe)
     fixes = _verify(runner, ev, cells, st)
     inj, have = _injection(cells, grid, spec, st)
@@ -297,6 +299,52 @@ def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSet
     cells.loc[move, "bench_mbt_offset_applied"] = True
 
 
+def _load_trend(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -> None:
+    """Make the MBT targets of each speed non-decreasing as the throttle closes, still capped by the knock border.
+
+    At one speed a smaller throttle means a thinner charge with more residual gas, which burns more slowly,
+    so MBT moves to more advance [H, sec. 9.3]; the model's MBT estimates, each with its identification error
+    (1-3 deg hold-out), can break that order, and a part-load cell then runs behind WOT.  The targets (MBT +
+    carried bench offset - safety retard; a cell whose MBT lies beyond ``spark_max`` is held there, a
+    bench-pinned cell at its bench spark) are replaced by their least-squares fit under the order, per speed
+    (:func:`isotonic_nonincreasing` along throttle, equal weights, held values weighted 1e6): violators are
+    pooled to their mean, cells in order are left alone.  Knock-limited cells take part with their MBT
+    estimate (the border still caps them); cells without an MBT estimate and infeasible cells do not.  ``load_trend_shift_deg`` records each
+    cell's move of its target (0 where nothing moved).
+    """
+    cells["load_trend_shift_deg"] = 0.0
+    if not st.mbt_monotone_in_load:
+        return
+    lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
+    limited = cells["limited_by"].to_numpy(object)
+    bench = cells["bench_spark_deg_btdc"].to_numpy(float)
+    pinned = np.isfinite(bench)
+    offset = np.where(cells["bench_mbt_offset_applied"].to_numpy(bool),
+                      cells["bench_mbt_offset_deg"].to_numpy(float), 0.0)
+    target = np.clip(cells["spark_mbt_deg_btdc"].to_numpy(float) + offset - st.safety_retard_deg, lo, hi)
+    target = np.where(pinned, bench, np.where(limited == "spark_max", hi, target))
+    use = (cells["feasible"].to_numpy(bool) & np.isfinite(target)
+           & (pinned | np.isin(limited, ["mbt", "retard", "knock", "spark_max"])))
+    # held: the bench's spark, and a cell whose MBT lies beyond spark_max (its target is spark_max exactly)
+    held = pinned | (limited == "spark_max")
+    speed, th = cells["speed_rpm"].to_numpy(float), cells["throttle_pct"].to_numpy(float)
+    fitted = target.copy()
+    for n in np.unique(speed[use]):
+        idx = np.flatnonzero(use & (speed == n))
+        idx = idx[np.argsort(th[idx])]          # throttle ascending: the target must not rise
+        fitted[idx] = isotonic_nonincreasing(target[idx], np.where(held[idx], 1e6, 1.0))
+    move = use & ~held & (np.abs(fitted - target) > 1e-9)
+    if not move.any():
+        return
+    capped = fitted > border_safe
+    at_mbt = "retard" if st.safety_retard_deg > 0 else "mbt"
+    unc = np.maximum(0.0, np.minimum(fitted, cells["spark_border_deg_btdc"].to_numpy(float)) - border_safe)
+    cells.loc[move, "spark_raw_deg_btdc"] = np.where(capped, border_safe, fitted)[move]
+    cells.loc[move, "limited_by"] = np.where(capped, "knock", at_mbt)[move]
+    cells.loc[move, "knock_uncertainty_retard_deg"] = np.nan_to_num(unc)[move]
+    cells.loc[move, "load_trend_shift_deg"] = (fitted - target)[move]
+
+
 def _smooth_spark(cells: pd.DataFrame, grid: EcuGrid, st: MapSettings, border_safe: np.ndarray) -> dict:
     """Smooth the spark table (feasible cells are data; others are filled; zone 1 pinned to spark_min)."""
     lo, hi = st.spark_min_deg_btdc, st.spark_max_deg_btdc
@@ -439,5 +487,9 @@ def _stats(cells, grid, st, runner, stages, fixes, sinfo, inj, have, applied, wa
         "bench_mbt_offset": {"reach_rpm": st.bench_offset_reach_rpm,
                              "cells_moved": int(cells["bench_mbt_offset_applied"].sum()),
                              "max_abs_deg": float(cells["bench_mbt_offset_deg"].abs().max())},
+        "load_trend": {"on": st.mbt_monotone_in_load,
+                       "cells_raised": int((cells["load_trend_shift_deg"] > 0).sum()),
+                       "cells_lowered": int((cells["load_trend_shift_deg"] < 0).sum()),
+                       "max_abs_shift_deg": float(cells["load_trend_shift_deg"].abs().max())},
         "battery_v": st.battery_v, "seconds": round(wall, 2),
     }

@@ -92,6 +92,11 @@ class MapSettings:
         measured speeds and faded to zero over this distance beyond them [rpm]
         (:mod:`engine_model.tables.bench_offset`).  Default 2000; None carries nothing (only the
         measured cells take the bench's spark).
+    mbt_monotone_in_load : bool
+        At each speed, fit the cells' MBT targets by least squares under the order "no less advance as the
+        throttle closes" before the knock cap (a thinner charge with more residual burns more slowly:
+        Heywood 1988, sec. 9.3); ``load_trend_shift_deg`` per cell says what moved.  Default True; False
+        keeps each cell's own MBT estimate (the truth's own table in the benchmarks is built so).
     """
 
     knock_margin: float = 0.0
@@ -112,6 +117,7 @@ class MapSettings:
     ca50_target_deg_atdc: float = priors.CA50_TARGET_DEG_ATDC
     knock_uncertainty_z: float = 1.0
     bench_offset_reach_rpm: float | None = 2000.0
+    mbt_monotone_in_load: bool = True
 
     def __post_init__(self):
         def need(ok, name, rule):
@@ -140,6 +146,7 @@ class MapSettings:
              and 0 <= self.knock_uncertainty_z <= 4, "knock_uncertainty_z", "must be a number in [0, 4] (sigmas)")
         need(self.bench_offset_reach_rpm is None or 0 <= self.bench_offset_reach_rpm <= 20000,
              "bench_offset_reach_rpm", "must be None (carry nothing) or lie in [0, 20000] rpm")
+        need(isinstance(self.mbt_monotone_in_load, bool), "mbt_monotone_in_load", "must be True or False")
 
     @property
     def cycle_advance(self) -> float:
@@ -221,7 +228,8 @@ class MapResult:
         lambda, spark_prior_deg_btdc`` (model's CA50 spark), ``spark_mbt_deg_btdc``
         (NaN where not found), ``spark_border_deg_btdc`` (highest knock-safe
         spark evaluated; spark_max if no knock met), ``spark_raw_deg_btdc``,
-        ``spark_deg_btdc`` (table), ``smoothing_shift_deg``,
+        ``spark_deg_btdc`` (table), ``smoothing_shift_deg``, ``load_trend_shift_deg`` (move of the
+        MBT target by the load-trend fit, ``MapSettings.mbt_monotone_in_load``),
         ``phasing_std_deg`` (model's 1-sigma CA50-offset error at the knock border),
         ``knock_phasing_gain`` [deg spark / deg CA50] (the cell's own, or the median of the
         measured gains around it where the own is an outlier among them;

@@ -1,4 +1,5 @@
-"""Smoothing of a raw ECU table within per-cell bounds (a bounded least-squares fit with a curvature penalty)."""
+"""Smoothing of a raw ECU table within per-cell bounds (a bounded least-squares fit with a curvature penalty),
+and the weighted least-squares fit of a sequence under a monotone constraint (:func:`isotonic_nonincreasing`)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,7 @@ import math
 
 import numpy as np
 
-__all__ = ["second_differences", "smooth_table", "bounded_quadratic"]
+__all__ = ["second_differences", "smooth_table", "bounded_quadratic", "isotonic_nonincreasing"]
 
 
 def second_differences(table: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -124,3 +125,28 @@ def smooth_table(raw: np.ndarray, weight: np.ndarray, lower: np.ndarray, upper: 
             "max_shift": float(np.max(np.abs(shift))) if shift.size else 0.0,
             "rms_shift": float(np.sqrt(np.mean(shift ** 2))) if shift.size else 0.0}
     return x.reshape(shape), info
+
+
+def isotonic_nonincreasing(y: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """argmin sum w (x - y)^2 subject to x[0] >= x[1] >= ... (weighted least squares, non-increasing).
+
+    Pool-adjacent-violators (Barlow et al., Statistical Inference under Order Restrictions, 1972, ch. 1): a
+    run of neighbours that breaks the order is replaced by its weighted mean until none does; exact in at most
+    n - 1 merges.  ``w`` > 0; a very large weight holds its value (a measured point among estimates).
+    """
+    y, w = np.asarray(y, float), np.asarray(w, float)
+    if y.shape != w.shape or y.ndim != 1:
+        raise ValueError(f"y and w must be 1-D of one length, got {y.shape} and {w.shape}")
+    if not (np.all(np.isfinite(y)) and np.all(np.isfinite(w)) and np.all(w > 0)):
+        raise ValueError("y must be finite and w finite and > 0")
+    mean, weight, size = [], [], []
+    for v, u in zip(y, w):
+        mean.append(float(v))
+        weight.append(float(u))
+        size.append(1)
+        while len(mean) > 1 and mean[-2] < mean[-1]:
+            u2 = weight[-2] + weight[-1]
+            mean[-2] = (weight[-2] * mean[-2] + weight[-1] * mean[-1]) / u2
+            weight[-2], size[-2] = u2, size[-2] + size[-1]
+            del mean[-1], weight[-1], size[-1]
+    return np.repeat(mean, size)

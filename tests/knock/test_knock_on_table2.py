@@ -49,7 +49,10 @@ def test_the_table_honours_table2_and_reports_against_it(quick_run):
     assert bc["trends"]["part_load_drops"] == [], bc["trends"]["part_load_drops"]
     html = (quick_run.out / "index.html").read_text()
     assert "Against the real bench" in html and "bench_consistency.png" in html
-    assert "Trends: part-load cells more than 2 deg behind WOT: 0;" in html
+    assert "Trends: part-load cells more than 2 deg behind WOT: 0" in html
+    moves = bc["trends"]["load_trend_moves"]       # reported, each with its shift (the model's own MBT order)
+    assert all(abs(m["shift_deg"]) > 2.0 for m in moves)
+    assert (f"the load-trend fit moved {len(moves)} MBT targets" in html) == bool(moves)
     assert bc["trends"]["knock_evidence"]["speed_rpm"] == [8000.0, 11000.0]
     assert "The knock evidence is 7 bench points at 8000-11000 rpm, 100 % throttle;" in html
     assert np.isfinite(tab["map_mbt_deg_btdc"]).all()
