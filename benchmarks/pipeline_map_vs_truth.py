@@ -55,7 +55,8 @@ def main():
         t0 = time.perf_counter()
         # the truth's own MBT in every cell (no load-trend fit: the truth's estimates carry no error)
         res = build_maps(spec, law, grid=EcuGrid(), lambda_table=lam_table,
-                         settings=MapSettings(mbt_monotone_in_load=False), evaluate=lambda p: simulate(spec, p, SOLVER))
+                         settings=MapSettings(mbt_monotone_in_load=False),
+                         evaluate=lambda p: simulate(spec, p, SOLVER))
         truth = res.cells
         truth.to_parquet(tc)
         print(f"truth table: {res.stats['simulated_points']} simulations, {time.perf_counter() - t0:.0f} s")

@@ -288,15 +288,20 @@ def _carry_bench_offset(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSet
             & np.isin(limited, ["mbt", "retard", "knock"]))
     if not move.any():
         return
-    target = np.clip(mbt + d - st.safety_retard_deg, lo, hi)
+    _set_target(cells, move, np.clip(mbt + d - st.safety_retard_deg, lo, hi), border_safe, st)
+    cells.loc[move, "bench_mbt_offset_applied"] = True
+
+
+def _set_target(cells: pd.DataFrame, move: np.ndarray, target: np.ndarray, border_safe: np.ndarray,
+                st: MapSettings) -> None:
+    """Give the ``move`` cells a new spark target, capped by the knock-safe border: ``spark_raw_deg_btdc``,
+    ``limited_by`` ("knock" where the cap binds) and the uncertainty retard the cap takes off the target."""
     capped = target > border_safe
-    raw = np.where(capped, border_safe, target)
     at_mbt = "retard" if st.safety_retard_deg > 0 else "mbt"
     unc = np.maximum(0.0, np.minimum(target, cells["spark_border_deg_btdc"].to_numpy(float)) - border_safe)
-    cells.loc[move, "spark_raw_deg_btdc"] = raw[move]
+    cells.loc[move, "spark_raw_deg_btdc"] = np.where(capped, border_safe, target)[move]
     cells.loc[move, "limited_by"] = np.where(capped, "knock", at_mbt)[move]
     cells.loc[move, "knock_uncertainty_retard_deg"] = np.nan_to_num(unc)[move]
-    cells.loc[move, "bench_mbt_offset_applied"] = True
 
 
 def _load_trend(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -> None:
@@ -307,10 +312,10 @@ def _load_trend(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -
     (1-3 deg hold-out), can break that order, and a part-load cell then runs behind WOT.  The targets (MBT +
     carried bench offset - safety retard; a cell whose MBT lies beyond ``spark_max`` is held there, a
     bench-pinned cell at its bench spark) are replaced by their least-squares fit under the order, per speed
-    (:func:`isotonic_nonincreasing` along throttle, equal weights, held values weighted 1e6): violators are
-    pooled to their mean, cells in order are left alone.  Knock-limited cells take part with their MBT
-    estimate (the border still caps them); cells without an MBT estimate and infeasible cells do not.  ``load_trend_shift_deg`` records each
-    cell's move of its target (0 where nothing moved).
+    (:func:`isotonic_nonincreasing` along throttle, equal weights, held values weighted 1e6): only runs of
+    cells that break the order move, each run to its mean.  Knock-limited cells take part with their MBT
+    estimate (the border still caps them); cells without an MBT estimate and infeasible cells do not.
+    ``load_trend_shift_deg`` records each cell's move of its target (0 where nothing moved).
     """
     cells["load_trend_shift_deg"] = 0.0
     if not st.mbt_monotone_in_load:
@@ -334,14 +339,7 @@ def _load_trend(cells: pd.DataFrame, border_safe: np.ndarray, st: MapSettings) -
         idx = idx[np.argsort(th[idx])]          # throttle ascending: the target must not rise
         fitted[idx] = isotonic_nonincreasing(target[idx], np.where(held[idx], 1e6, 1.0))
     move = use & ~held & (np.abs(fitted - target) > 1e-9)
-    if not move.any():
-        return
-    capped = fitted > border_safe
-    at_mbt = "retard" if st.safety_retard_deg > 0 else "mbt"
-    unc = np.maximum(0.0, np.minimum(fitted, cells["spark_border_deg_btdc"].to_numpy(float)) - border_safe)
-    cells.loc[move, "spark_raw_deg_btdc"] = np.where(capped, border_safe, fitted)[move]
-    cells.loc[move, "limited_by"] = np.where(capped, "knock", at_mbt)[move]
-    cells.loc[move, "knock_uncertainty_retard_deg"] = np.nan_to_num(unc)[move]
+    _set_target(cells, move, fitted, border_safe, st)
     cells.loc[move, "load_trend_shift_deg"] = (fitted - target)[move]
 
 
